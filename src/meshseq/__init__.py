@@ -5,7 +5,7 @@ Sequences" (Qiao, Gao, Lai, Xia, AAAI 2019): ACAP deformation features, a mesh-c
 VAE feeding a shared-weight bidirectional LSTM, and synthesis by prediction and completion.
 """
 
-from meshseq.errors import MeshseqError
+from meshseq.errors import MeshseqError, MeshseqWarning
 
 __version__ = "0.1.0"
-__all__ = ["MeshseqError", "__version__"]
+__all__ = ["MeshseqError", "MeshseqWarning", "__version__"]

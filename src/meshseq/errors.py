@@ -7,3 +7,7 @@ Messages are one line and name the file, frame or option that is wrong.
 
 class MeshseqError(Exception):
     """A user-facing error: bad input data, bad option, or an output that would be overwritten."""
+
+
+class MeshseqWarning(UserWarning):
+    """Something in the user's data was repaired or looks suspicious (the CLI prints it on one line)."""

@@ -1,0 +1,274 @@
+"""Mesh topology and per-mesh geometry: edges, 1-rings, components, cotangent weights, normals.
+
+Everything here is pure: arrays in, arrays out. Vertices are ``(V, 3)`` or batched ``(T, V, 3)``
+float arrays, faces ``(F, 3)`` integer arrays. Topology depends on faces only and is computed
+once per mesh; geometry (normals, edge lengths) is vectorised over frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import igl
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse import csgraph
+
+#: Cotangent-weight guards of method.md section 1.1.
+MIN_WEIGHT = 1e-10
+MAX_WEIGHT = 1e5
+
+
+def undirected_edges(faces: np.ndarray) -> np.ndarray:
+    """Unique undirected edges ``(E, 2)`` with ``i < j``, sorted lexicographically."""
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e.sort(axis=1)
+    return np.unique(e, axis=0)
+
+
+def edge_face_counts(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Undirected edges ``(E, 2)`` and how many faces use each ``(E,)``.
+
+    1 marks a boundary edge, more than 2 a non-manifold edge.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e.sort(axis=1)
+    edges, counts = np.unique(e, axis=0, return_counts=True)
+    return edges, counts
+
+
+def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Triangle areas, ``(..., F)`` for vertices ``(..., V, 3)``."""
+    v = np.asarray(vertices)
+    a, b, c = (v[..., faces[:, k], :] for k in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=-1)
+
+
+def degenerate_faces(vertices: np.ndarray, faces: np.ndarray, rel_tol: float = 1e-12) -> np.ndarray:
+    """Boolean ``(F,)``: faces whose area is (numerically) zero in the ``(V, 3)`` mesh.
+
+    A face counts as degenerate when its area is below ``rel_tol`` times the squared
+    bounding-box diagonal, or when it repeats a vertex index.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    diag = bounding_box_diagonal(v)
+    repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 2] == faces[:, 0])
+    return repeated | (face_areas(v, faces) <= rel_tol * max(diag, 1e-300) ** 2)
+
+
+def bounding_box_diagonal(vertices: np.ndarray) -> float:
+    """Length of the axis-aligned bounding box diagonal of all points in ``(..., V, 3)``."""
+    p = np.asarray(vertices).reshape(-1, 3)
+    return float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+
+
+@dataclass(frozen=True)
+class Topology:
+    """Connectivity of one triangle mesh, computed once and shared by every frame.
+
+    Attributes:
+        faces: ``(F, 3)`` int64.
+        n_vertices: V.
+    """
+
+    faces: np.ndarray
+    n_vertices: int
+
+    @staticmethod
+    def from_faces(faces: np.ndarray, n_vertices: int | None = None) -> "Topology":
+        f = np.ascontiguousarray(faces, dtype=np.int64)
+        n = int(f.max()) + 1 if n_vertices is None else int(n_vertices)
+        return Topology(f, n)
+
+    @cached_property
+    def edges(self) -> np.ndarray:
+        """Undirected edges ``(E, 2)``, ``i < j``."""
+        return undirected_edges(self.faces)
+
+    @cached_property
+    def directed_edges(self) -> np.ndarray:
+        """Both directions of every edge, ``(2E, 2)`` rows ``(i, j)``, sorted by ``i`` then ``j``."""
+        e = self.edges
+        d = np.concatenate([e, e[:, ::-1]])
+        order = np.lexsort((d[:, 1], d[:, 0]))
+        return d[order]
+
+    @cached_property
+    def adjacency(self) -> sp.csr_matrix:
+        """Symmetric 0/1 vertex adjacency ``(V, V)`` in CSR (row i lists the 1-ring of i)."""
+        d = self.directed_edges
+        n = self.n_vertices
+        return sp.csr_matrix((np.ones(len(d)), (d[:, 0], d[:, 1])), shape=(n, n))
+
+    @cached_property
+    def degrees(self) -> np.ndarray:
+        """1-ring sizes ``(V,)``."""
+        return np.diff(self.adjacency.indptr)
+
+    def padded_neighbors(self) -> tuple[np.ndarray, np.ndarray]:
+        """1-rings as a padded table for gathers.
+
+        Returns:
+            index: ``(V, D)`` int64, D the largest degree; padding repeats the vertex itself.
+            mask: ``(V, D)`` bool, True where the entry is a real neighbour.
+        """
+        adj = self.adjacency
+        deg = self.degrees
+        width = int(deg.max()) if len(deg) else 0
+        slot = np.arange(adj.nnz) - np.repeat(adj.indptr[:-1], deg)
+        rows = np.repeat(np.arange(self.n_vertices), deg)
+        index = np.repeat(np.arange(self.n_vertices)[:, None], width, axis=1)
+        mask = np.zeros((self.n_vertices, width), dtype=bool)
+        index[rows, slot] = adj.indices
+        mask[rows, slot] = True
+        return index, mask
+
+    @cached_property
+    def component_labels(self) -> np.ndarray:
+        """Connected-component label of each vertex ``(V,)``, components numbered by first vertex."""
+        _, labels = csgraph.connected_components(self.adjacency, directed=False)
+        # Renumber so component 0 holds vertex 0, component 1 the next unseen vertex, ...
+        _, first = np.unique(labels, return_index=True)
+        rank = np.empty(len(first), dtype=np.int64)
+        rank[np.argsort(np.argsort(first))] = np.arange(len(first))
+        return rank[labels]
+
+    @property
+    def n_components(self) -> int:
+        return int(self.component_labels.max()) + 1 if self.n_vertices else 0
+
+    @cached_property
+    def component_roots(self) -> np.ndarray:
+        """The lowest-numbered vertex of each component ``(C,)``."""
+        _, first = np.unique(self.component_labels, return_index=True)
+        return first
+
+    @cached_property
+    def bfs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Breadth-first trees over the 1-ring graph, one per component, rooted at its lowest vertex.
+
+        Returns:
+            order: ``(V,)`` vertices in BFS order (component by component).
+            parent: ``(V,)`` parent of each vertex in its tree, -1 for roots.
+            depth: ``(V,)`` hops from the root.
+        """
+        order_parts = []
+        parent = np.full(self.n_vertices, -1, dtype=np.int64)
+        for root in self.component_roots:
+            order, pred = csgraph.breadth_first_order(self.adjacency, int(root), directed=False)
+            order_parts.append(order)
+            parent[order[1:]] = pred[order[1:]]
+        order = np.concatenate(order_parts) if order_parts else np.zeros(0, dtype=np.int64)
+        depth = np.zeros(self.n_vertices, dtype=np.int64)
+        for v in order:  # one pass over an int array at set-up; O(V), not in any per-frame path
+            if parent[v] >= 0:
+                depth[v] = depth[parent[v]] + 1
+        return order, parent, depth
+
+    @cached_property
+    def bfs_levels(self) -> list[np.ndarray]:
+        """Vertices grouped by BFS depth: ``levels[d]`` holds every vertex at depth d (roots at 0)."""
+        _, _, depth = self.bfs
+        order = np.argsort(depth, kind="stable")
+        bounds = np.searchsorted(depth[order], np.arange(depth.max() + 2))
+        return [order[bounds[d]:bounds[d + 1]] for d in range(len(bounds) - 1)]
+
+    @cached_property
+    def boundary_edge_count(self) -> int:
+        return int((edge_face_counts(self.faces)[1] == 1).sum())
+
+    @cached_property
+    def nonmanifold_edge_count(self) -> int:
+        return int((edge_face_counts(self.faces)[1] > 2).sum())
+
+    @cached_property
+    def unreferenced_vertices(self) -> np.ndarray:
+        """Vertex indices no face uses ``(K,)``."""
+        used = np.zeros(self.n_vertices, dtype=bool)
+        used[self.faces.ravel()] = True
+        return np.flatnonzero(~used)
+
+
+def cotangent_weights(vertices: np.ndarray, topology: Topology) -> np.ndarray:
+    """Guarded cotangent weights, one per undirected edge ``(E,)`` of ``topology.edges``.
+
+    ``w_ij = 0.5 (cot a_ij + cot b_ij)``, one-sided on boundary edges (method.md 1.1); then
+    ``w = max(w, 1e-10)``, and NaN or ``> 1e5`` (degenerate triangles) becomes 1.
+
+    Args:
+        vertices: ``(V, 3)`` reference mesh.
+    """
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = topology.faces
+    # igl: C[f, k] = 0.5 cot of the angle opposite edge k, edges ordered [1,2], [2,0], [0,1].
+    with np.errstate(all="ignore"):
+        half_cot = np.asarray(igl.cotmatrix_entries(v, f), dtype=np.float64)
+    e = np.concatenate([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]])
+    e.sort(axis=1)
+    vals = np.concatenate([half_cot[:, 0], half_cot[:, 1], half_cot[:, 2]])
+    edges = topology.edges
+    key_all = e[:, 0] * topology.n_vertices + e[:, 1]
+    key = edges[:, 0] * topology.n_vertices + edges[:, 1]
+    slot = np.searchsorted(key, key_all)
+    w = np.zeros(len(edges))
+    np.add.at(w, slot, vals)  # NaN propagates, as intended
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(w) | (w > MAX_WEIGHT)
+        w = np.maximum(w, MIN_WEIGHT)
+    w[bad] = 1.0
+    return w
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals, ``(..., V, 3)`` for vertices ``(..., V, 3)``.
+
+    A vertex whose summed face normal vanishes gets the zero vector.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    a, b, c = (v[..., faces[:, k], :] for k in range(3))
+    fn = np.cross(b - a, c - a)  # (..., F, 3), length = 2 * area
+    n_v = v.shape[-2]
+    scatter = _face_scatter(faces, n_v)
+    lead = fn.shape[:-2]
+    flat = np.moveaxis(fn, -2, 0).reshape(fn.shape[-2], -1)  # (F, prod(lead) * 3)
+    vn = (scatter @ flat).reshape((n_v,) + lead + (3,))
+    vn = np.moveaxis(vn, 0, -2)
+    norm = np.linalg.norm(vn, axis=-1, keepdims=True)
+    return np.divide(vn, norm, out=np.zeros_like(vn), where=norm > 0)
+
+
+def _face_scatter(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """Sparse ``(V, F)`` matrix summing each face's value into its three vertices."""
+    nf = len(faces)
+    rows = np.asarray(faces, dtype=np.int64).T.ravel()
+    cols = np.tile(np.arange(nf), 3)
+    return sp.csr_matrix((np.ones(3 * nf), (rows, cols)), shape=(n_vertices, nf))
+
+
+def mean_ring_edge_length(vertices: np.ndarray, topology: Topology) -> np.ndarray:
+    """Mean length of the edges around each vertex, ``(..., V)`` for vertices ``(..., V, 3)``."""
+    v = np.asarray(vertices, dtype=np.float64)
+    e = topology.edges
+    length = np.linalg.norm(v[..., e[:, 1], :] - v[..., e[:, 0], :], axis=-1)  # (..., E)
+    n = topology.n_vertices
+    inc = sp.csr_matrix(
+        (np.ones(2 * len(e)), (np.concatenate([e[:, 0], e[:, 1]]), np.tile(np.arange(len(e)), 2))),
+        shape=(n, len(e)),
+    )
+    lead = length.shape[:-1]
+    sums = inc @ np.moveaxis(length, -1, 0).reshape(len(e), -1)  # (V, prod(lead))
+    deg = np.maximum(topology.degrees, 1)[:, None]
+    return np.moveaxis((sums / deg).reshape((n,) + lead), 0, -1)
+
+
+def topology_hash(faces: np.ndarray, n_vertices: int) -> str:
+    """A short stable fingerprint of a connectivity (faces and vertex count), for checkpoints."""
+    import hashlib
+
+    h = hashlib.sha256()
+    h.update(np.int64(n_vertices).tobytes())
+    h.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
+    return h.hexdigest()[:16]
