@@ -1,61 +1,68 @@
 """The ``meshseq`` command line: a thin layer over the library.
 
-Each command group lives in its own module and registers on ``app``. A ``MeshseqError`` (a user's
-mistake) is printed as one line, ``meshseq: error: ...``, with exit status 2 and no traceback;
-``MeshseqWarning``s are printed as ``meshseq: warning: ...``.
+Each command group lives in its own module with a ``register(subparsers)`` function that adds
+its sub-commands; a sub-command's handler takes the parsed ``argparse.Namespace`` and returns an
+exit status (or None for 0). A ``MeshseqError`` (a user's mistake) is printed as one line,
+``meshseq: error: ...``, with exit status 2 and no traceback; ``MeshseqWarning``s are printed as
+``meshseq: warning: ...``.
 """
 
 from __future__ import annotations
 
+import argparse
+import importlib
 import sys
 import warnings
 
-import typer
-
+from meshseq import __version__
 from meshseq.errors import MeshseqError, MeshseqWarning
 
-app = typer.Typer(
-    name="meshseq",
-    help="Learn 3D mesh animation sequences and synthesize new ones (ACAP features + BD-LSTM).",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
+#: Modules of meshseq.cli that register sub-commands, in the order --help lists them.
+COMMAND_MODULES = ("acap_cmds", "train_cmds", "view_cmds")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="meshseq",
+        description="Learn 3D mesh animation sequences and synthesize new ones "
+        "(ACAP deformation features + bidirectional LSTM, Qiao et al. AAAI 2019).",
+        epilog="DATA, wherever a command takes it: a folder of OBJ/PLY/OFF frames, a .npz with "
+        "'vertices' (T,V,3) and 'faces' (F,3), a Dyna-style FILE.h5:SEQUENCE, or several mesh files.",
+    )
+    parser.add_argument("--version", action="version", version=f"meshseq {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"meshseq.cli.{name}").register(sub)
+    return parser
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
-    if issubclass(category, MeshseqWarning):
-        print(f"meshseq: warning: {message}", file=sys.stderr)
-    else:
-        print(f"meshseq: warning: {category.__name__}: {message}", file=sys.stderr)
+    prefix = "" if issubclass(category, MeshseqWarning) else f"{category.__name__}: "
+    print(f"meshseq: warning: {prefix}{message}", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the console script; returns the exit status."""
-    from meshseq.cli import acap_cmds, train_cmds, view_cmds  # noqa: F401  (register commands)
-
+    """Run the command line with ``argv`` (default: sys.argv[1:]); returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 1
+    old_showwarning = warnings.showwarning
     warnings.showwarning = _show_warning
     try:
-        app(args=argv, standalone_mode=False)
+        status = args.func(args)
     except MeshseqError as err:
         print(f"meshseq: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("meshseq: interrupted", file=sys.stderr)
         return 130
-    except typer.Exit as ex:
-        return ex.exit_code
-    except Exception as err:  # click usage errors
-        import click
-
-        if isinstance(err, click.exceptions.ClickException):
-            err.show()
-            return err.exit_code
-        if isinstance(err, click.exceptions.Abort):
-            return 1
-        raise
-    return 0
+    finally:
+        warnings.showwarning = old_showwarning
+    return int(status or 0)
 
 
 def run() -> None:
+    """Console-script entry point."""
     sys.exit(main())

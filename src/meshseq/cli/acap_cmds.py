@@ -1,3 +1,5 @@
 """meshseq commands: acap_cmds (filled in by its issue)."""
 
-from meshseq.cli import app  # noqa: F401
+
+def register(sub) -> None:
+    """Add this module's sub-commands to the ``meshseq`` parser's ``sub`` (argparse subparsers)."""
