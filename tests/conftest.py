@@ -1,0 +1,41 @@
+"""Shared pytest fixtures.
+
+``shared_data`` locates the team's real data folder (``../shared/data`` relative to the repo
+root, or ``$MESHSEQ_SHARED_DATA``). A test that needs it FAILS (never skips) when it is missing.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def shared_data_dir() -> Path:
+    """Path of the shared data folder; ``pytest.fail`` with a clear message if it is missing."""
+    override = os.environ.get("MESHSEQ_SHARED_DATA")
+    path = Path(override) if override else REPO_ROOT.parent / "shared" / "data"
+    if not path.is_dir():
+        pytest.fail(
+            f"shared data folder not found: {path} (set MESHSEQ_SHARED_DATA to the folder holding "
+            "horse-gallop.npz, crane.npz, pcow.npz)",
+            pytrace=False,
+        )
+    return path
+
+
+def shared_file(name: str) -> Path:
+    """Path of one file in the shared data folder, e.g. ``shared_file("crane.npz")``; fails if missing."""
+    path = shared_data_dir() / name
+    if not path.is_file():
+        pytest.fail(f"shared data file not found: {path}", pytrace=False)
+    return path
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The shared data folder (``../shared/data``); the test fails if it is missing."""
+    return shared_data_dir()
