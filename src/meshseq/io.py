@@ -1,0 +1,734 @@
+"""Read and write mesh sequences; atomic, never-overwriting output.
+
+A *mesh sequence* is T frames of one triangle mesh: vertices ``(T, V, 3)`` that move, faces
+``(F, 3)`` shared by every frame. :func:`load_sequence` reads one from
+
+* a folder of ``.obj`` / ``.ply`` / ``.off`` frames (natural order: ``2.obj`` before ``10.obj``;
+  other files in the folder are ignored),
+* an explicit list of mesh files, or a single mesh file (one frame),
+* a ``.npz`` with ``vertices`` ``(T, V, 3)``, ``faces`` ``(F, 3)`` and optional ``fps``, ``name``,
+  ``vertex_map``,
+* a Dyna-style HDF5 file addressed as ``"file.h5:sequence_name"`` (the sequence dataset holds
+  vertices ``(V, 3, T)``, dataset ``faces`` the faces).
+
+Every loader ends in :func:`validate_sequence`: bad data raises :class:`MeshseqError` with one
+line naming the file or frame; repairs (polygon triangulation, dropping unreferenced vertices)
+and suspicions (degenerate triangles, non-manifold edges) warn with :class:`MeshseqWarning`.
+
+Vertex order is preserved exactly as stored in the files (OBJ and OFF are parsed here with
+numpy; PLY goes through trimesh with ``process=False``), because every frame's vertex ``i`` must
+be the same point of the surface.
+
+:func:`save_sequence` writes ``.npz`` or a folder of OBJ/PLY frames; :func:`atomic_output` is the
+general "write to a temporary sibling, then rename" context manager that every writer in the
+package uses, so an interrupted write never leaves a half-written file and nothing is
+overwritten without ``force``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import secrets
+import shutil
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from meshseq.errors import MeshseqError, MeshseqWarning
+
+MESH_EXTENSIONS = (".obj", ".ply", ".off")
+HDF5_EXTENSIONS = (".h5", ".hdf5")
+SAVE_FORMATS = ("npz", "obj", "ply")
+
+
+# --------------------------------------------------------------------------------------------
+# The sequence type and its validation
+
+
+@dataclass(eq=False)
+class MeshSequence:
+    """T frames of one triangle mesh.
+
+    Attributes:
+        vertices: ``(T, V, 3)`` float64 positions.
+        faces: ``(F, 3)`` int64 vertex indices, shared by every frame.
+        name: short human name (file or folder stem, or the stored name).
+        fps: frames per second if known.
+        vertex_map: ``(V,)`` int64 index of each vertex in the source file when unreferenced
+            vertices were dropped on load; None when vertices are exactly the file's.
+        source: where the sequence came from (path or address), for messages.
+
+    Construction coerces dtypes and checks shapes (MeshseqError if wrong); the full data checks
+    and repairs live in :func:`validate_sequence`, which every loader calls.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    name: str = "sequence"
+    fps: float | None = None
+    vertex_map: np.ndarray | None = None
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        label = self.source or self.name
+        v = np.asarray(self.vertices)
+        f = np.asarray(self.faces)
+        if v.ndim != 3 or v.shape[2] != 3 or v.shape[0] < 1 or v.shape[1] < 1:
+            raise MeshseqError(f"{label}: vertices must have shape (T, V, 3) with T, V >= 1, got {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] < 1:
+            raise MeshseqError(f"{label}: faces must have shape (F, 3) with F >= 1, got {f.shape}")
+        if not np.issubdtype(f.dtype, np.integer):
+            raise MeshseqError(f"{label}: faces must be integers, got dtype {f.dtype}")
+        self.vertices = np.ascontiguousarray(v, dtype=np.float64)
+        self.faces = np.ascontiguousarray(f, dtype=np.int64)
+        if self.fps is not None:
+            self.fps = float(self.fps)
+        if self.vertex_map is not None:
+            vm = np.ascontiguousarray(self.vertex_map, dtype=np.int64)
+            if vm.shape != (v.shape[1],):
+                raise MeshseqError(f"{label}: vertex_map must have shape ({v.shape[1]},), got {vm.shape}")
+            self.vertex_map = vm
+        self.name = str(self.name)
+        self.source = str(self.source)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[1])
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    def __repr__(self) -> str:
+        return (f"MeshSequence(name={self.name!r}, frames={self.n_frames}, vertices={self.n_vertices}, "
+                f"faces={self.n_faces}, fps={self.fps}, source={self.source!r})")
+
+
+def validate_sequence(vertices: np.ndarray, faces: np.ndarray, *, name: str, source: str,
+                      fps: float | None = None, vertex_map: np.ndarray | None = None,
+                      frame_labels: Sequence[str] | None = None) -> MeshSequence:
+    """Check loaded arrays and build a :class:`MeshSequence` (the last step of every loader).
+
+    Args:
+        vertices: ``(T, V, 3)`` float.
+        faces: ``(F, 3)`` int, triangles (polygons must be triangulated by the reader).
+        name, source, fps, vertex_map: as in :class:`MeshSequence`.
+        frame_labels: T strings naming each frame in messages (e.g. the frame files);
+            default ``"<source> frame t"``.
+
+    Raises MeshseqError for wrong shapes, NaN/Inf coordinates (naming the first bad frame and
+    vertex) and faces that index missing vertices. Drops unreferenced vertices (warning; the
+    result's ``vertex_map`` gives their original indices). Warns about degenerate triangles
+    (in the first frame) and non-manifold edges.
+    """
+    from meshseq.mesh import Topology, degenerate_faces
+
+    seq = MeshSequence(vertices, faces, name=name, fps=fps, vertex_map=vertex_map, source=source)
+    v, f = seq.vertices, seq.faces
+    n_frames, n_verts = v.shape[:2]
+
+    def frame_label(t: int) -> str:
+        if frame_labels is not None:
+            return str(frame_labels[t])
+        return f"{source} frame {t}" if n_frames > 1 else source
+
+    finite = np.isfinite(v).all(axis=2)  # (T, V)
+    if not finite.all():
+        t, i = np.argwhere(~finite)[0]
+        count = int((~finite[t]).sum())
+        raise MeshseqError(f"{frame_label(int(t))}: non-finite (NaN/Inf) coordinates at vertex {int(i)} "
+                           f"({count} vertices in this frame)")
+    lo, hi = int(f.min()), int(f.max())
+    if lo < 0 or hi >= n_verts:
+        bad = np.flatnonzero(((f < 0) | (f >= n_verts)).any(axis=1))[0]
+        raise MeshseqError(f"{source}: face {int(bad)} uses vertex {f[bad].tolist()} but there are only "
+                           f"{n_verts} vertices (indices 0..{n_verts - 1})")
+
+    used = np.zeros(n_verts, dtype=bool)
+    used[f.ravel()] = True
+    if not used.all():
+        kept = np.flatnonzero(used)
+        dropped = n_verts - len(kept)
+        remap = np.cumsum(used) - 1
+        f = remap[f]
+        v = np.ascontiguousarray(v[:, kept])
+        vm = kept if seq.vertex_map is None else seq.vertex_map[kept]
+        warnings.warn(f"{source}: dropped {dropped} unreferenced vertices (no face uses them; "
+                      f"first {int(np.flatnonzero(~used)[0])}); vertex_map keeps the original indices",
+                      MeshseqWarning, stacklevel=3)
+        seq = MeshSequence(v, f, name=seq.name, fps=seq.fps, vertex_map=vm, source=seq.source)
+
+    n_degenerate = int(degenerate_faces(seq.vertices[0], seq.faces).sum())
+    if n_degenerate:
+        warnings.warn(f"{frame_label(0)}: {n_degenerate} degenerate (zero-area) triangles of {seq.n_faces}",
+                      MeshseqWarning, stacklevel=3)
+    n_nonmanifold = Topology.from_faces(seq.faces, seq.n_vertices).nonmanifold_edge_count
+    if n_nonmanifold:
+        warnings.warn(f"{source}: {n_nonmanifold} non-manifold edges (shared by more than 2 faces)",
+                      MeshseqWarning, stacklevel=3)
+    return seq
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+
+
+def load_sequence(spec: str | os.PathLike | Sequence[str | os.PathLike], *,
+                  name: str | None = None) -> MeshSequence:
+    """Load a mesh sequence.
+
+    Args:
+        spec: a folder of OBJ/PLY/OFF frames, a ``.npz``, ``"file.h5:sequence"``, one mesh file
+            (a one-frame sequence), or a list of mesh files (one frame each, in the given order).
+        name: override the sequence name (default: stored name, else file/folder stem).
+
+    Returns:
+        :class:`MeshSequence` (vertices float64 ``(T, V, 3)``, faces int64 ``(F, 3)``).
+
+    Raises:
+        MeshseqError: one line naming the file/frame and what is wrong.
+    """
+    if isinstance(spec, (list, tuple)):
+        paths = [Path(p) for p in spec]
+        if not paths:
+            raise MeshseqError("empty list of mesh files")
+        for p in paths:
+            _check_mesh_path(p)
+        default = paths[0].parent.name or paths[0].stem
+        return _load_frames(paths, name=name or default, source=", ".join(map(str, paths[:2]))
+                            + (", ..." if len(paths) > 2 else ""))
+
+    text = os.fspath(spec)
+    path = Path(text)
+    if not path.exists():
+        h5 = _split_h5_address(text)
+        if h5 is not None:
+            return _load_h5(Path(h5[0]), h5[1], name=name)
+        raise MeshseqError(f"{text}: path does not exist")
+    if path.is_dir():
+        return _load_folder(path, name=name)
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        return _load_npz(path, name=name)
+    if suffix in HDF5_EXTENSIONS:
+        return _load_h5(path, None, name=name)
+    _check_mesh_path(path)
+    return _load_frames([path], name=name or path.stem, source=str(path))
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key putting ``frame2`` before ``frame10`` (digit runs compare as numbers)."""
+    parts = re.split(r"(\d+)", name)
+    return tuple(int(p) if i % 2 else p.casefold() for i, p in enumerate(parts)), name
+
+
+def _check_mesh_path(path: Path) -> None:
+    if not path.exists():
+        raise MeshseqError(f"{path}: path does not exist")
+    if path.is_dir():
+        raise MeshseqError(f"{path}: is a folder, expected a mesh file")
+    if path.suffix.lower() not in MESH_EXTENSIONS:
+        raise MeshseqError(f"{path}: unsupported extension {path.suffix!r} "
+                           f"(mesh frames: {', '.join(MESH_EXTENSIONS)}; sequences: .npz, .h5:NAME)")
+
+
+def _split_h5_address(text: str) -> tuple[str, str] | None:
+    if ":" not in text:
+        return None
+    file_part, seq_name = text.rsplit(":", 1)
+    if Path(file_part).suffix.lower() not in HDF5_EXTENSIONS:
+        return None
+    if not Path(file_part).exists():
+        raise MeshseqError(f"{file_part}: path does not exist")
+    return file_part, seq_name
+
+
+def _load_folder(folder: Path, *, name: str | None) -> MeshSequence:
+    files = [p for p in folder.iterdir() if not p.name.startswith(".") and p.is_file()]
+    meshes = [p for p in files if p.suffix.lower() in MESH_EXTENSIONS]
+    if not meshes:
+        others = sorted(p.name for p in files)
+        hint = f" (it holds {len(others)} other files, e.g. {others[0]})" if others else " (it is empty)"
+        raise MeshseqError(f"{folder}: no mesh files ({', '.join(MESH_EXTENSIONS)}) in folder{hint}")
+    kinds = sorted({p.suffix.lower() for p in meshes})
+    if len(kinds) > 1:
+        raise MeshseqError(f"{folder}: folder mixes {' and '.join(kinds)} frames; keep one format per "
+                           "folder or pass an explicit list of files")
+    meshes.sort(key=lambda p: natural_key(p.name))
+    return _load_frames(meshes, name=name or folder.resolve().name, source=str(folder))
+
+
+def _load_frames(paths: list[Path], *, name: str, source: str) -> MeshSequence:
+    """Read frame files into one sequence; faces must match the first frame's exactly."""
+    first = _read_mesh(paths[0])
+    ref_vertices, ref_faces = first.vertices, first.faces()
+    n_verts = len(ref_vertices)
+    vertices = np.empty((len(paths), n_verts, 3), dtype=np.float64)
+    vertices[0] = ref_vertices
+    for t in range(1, len(paths)):
+        frame = _read_mesh(paths[t])
+        if len(frame.vertices) != n_verts:
+            raise MeshseqError(f"{paths[t]}: {len(frame.vertices)} vertices, expected {n_verts} "
+                               f"(as in {paths[0]})")
+        if frame.face_key is None or frame.face_key != first.face_key:
+            faces = frame.faces()
+            if faces.shape != ref_faces.shape:
+                raise MeshseqError(f"{paths[t]}: {len(faces)} faces, expected {len(ref_faces)} "
+                                   f"(as in {paths[0]})")
+            diff = np.flatnonzero((faces != ref_faces).any(axis=1))
+            if len(diff):
+                k = int(diff[0])
+                raise MeshseqError(f"{paths[t]}: faces differ from {paths[0]} ({len(diff)} faces; first "
+                                   f"face {k} is {faces[k].tolist()}, expected {ref_faces[k].tolist()})")
+        vertices[t] = frame.vertices
+    if first.n_polygons:
+        warnings.warn(f"{paths[0]}: triangulated {first.n_polygons} non-triangle faces (fan) into "
+                      f"{len(ref_faces)} triangles in total", MeshseqWarning, stacklevel=3)
+    return validate_sequence(vertices, ref_faces, name=name, source=source,
+                             frame_labels=[str(p) for p in paths])
+
+
+def _load_npz(path: Path, *, name: str | None) -> MeshSequence:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except Exception as exc:  # zipfile.BadZipFile, ValueError, OSError, EOFError...
+        raise MeshseqError(f"{path}: cannot read .npz ({_one_line(exc)})") from None
+    missing = [k for k in ("vertices", "faces") if k not in arrays]
+    if missing:
+        raise MeshseqError(f"{path}: missing key(s) {', '.join(missing)} (found: "
+                           f"{', '.join(sorted(arrays)) or 'nothing'})")
+    v, f = arrays["vertices"], arrays["faces"]
+    if v.ndim != 3 or v.shape[2] != 3:
+        raise MeshseqError(f"{path}: 'vertices' must have shape (T, V, 3), got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise MeshseqError(f"{path}: 'faces' must have shape (F, 3), got {f.shape}")
+    if not np.issubdtype(f.dtype, np.integer):
+        raise MeshseqError(f"{path}: 'faces' must be integers, got dtype {f.dtype}")
+    fps = None
+    if "fps" in arrays and arrays["fps"].size == 1:
+        fps_value = float(arrays["fps"].reshape(()))
+        fps = fps_value if np.isfinite(fps_value) and fps_value > 0 else None
+    stored_name = str(arrays["name"].reshape(())) if "name" in arrays and arrays["name"].size == 1 else None
+    return validate_sequence(v, f, name=name or stored_name or path.stem, source=str(path), fps=fps,
+                             vertex_map=arrays.get("vertex_map"))
+
+
+def _load_h5(path: Path, seq_name: str | None, *, name: str | None) -> MeshSequence:
+    import h5py
+
+    try:
+        handle = h5py.File(path, "r")
+    except Exception as exc:
+        raise MeshseqError(f"{path}: cannot read HDF5 ({_one_line(exc)})") from None
+    with handle:
+        names = sorted(k for k in handle.keys() if k != "faces" and isinstance(handle[k], h5py.Dataset))
+        few = ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
+        if seq_name is None or seq_name == "":
+            raise MeshseqError(f"{path}: name the sequence as {path}:NAME (available: {few or 'none'})")
+        address = f"{path}:{seq_name}"
+        if seq_name not in handle:
+            raise MeshseqError(f"{address}: no sequence {seq_name!r} in the file (available: {few or 'none'})")
+        if "faces" not in handle:
+            raise MeshseqError(f"{path}: no 'faces' dataset")
+        try:
+            raw = np.asarray(handle[seq_name][()])
+            faces = np.asarray(handle["faces"][()])
+        except Exception as exc:
+            raise MeshseqError(f"{address}: cannot read ({_one_line(exc)})") from None
+    if raw.ndim != 3 or raw.shape[1] != 3:
+        raise MeshseqError(f"{address}: expected vertices stored as (V, 3, T), got {raw.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise MeshseqError(f"{path}: 'faces' must be integers of shape (F, 3), got {faces.shape} {faces.dtype}")
+    return validate_sequence(np.transpose(raw, (2, 0, 1)), faces, name=name or seq_name, source=address)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+# --------------------------------------------------------------------------------------------
+# Mesh file readers (one frame each)
+
+
+class _Frame:
+    """One parsed frame: vertices ``(V, 3)`` now; faces parsed lazily (identical face text in
+    every frame of a sequence is compared as bytes and parsed only once)."""
+
+    def __init__(self, vertices: np.ndarray, face_key: bytes | None, parse_faces, n_polygons: int = 0):
+        self.vertices = vertices
+        self.face_key = face_key
+        self._parse_faces = parse_faces
+        self._faces: np.ndarray | None = None
+        self.n_polygons = n_polygons
+
+    def faces(self) -> np.ndarray:
+        if self._faces is None:
+            self._faces, self.n_polygons = self._parse_faces()
+        return self._faces
+
+
+def _read_mesh(path: Path) -> _Frame:
+    suffix = path.suffix.lower()
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise MeshseqError(f"{path}: cannot read ({_one_line(exc)})") from None
+    if not data.strip():
+        raise MeshseqError(f"{path}: file is empty")
+    if suffix == ".obj":
+        frame = _read_obj(data, path)
+    elif suffix == ".off":
+        frame = _read_off(data, path)
+    elif suffix == ".ply":
+        frame = _read_ply(data, path)
+    else:  # pragma: no cover - callers check extensions first
+        raise MeshseqError(f"{path}: unsupported extension {path.suffix!r}")
+    return frame
+
+
+_OBJ_V = re.compile(rb"^[ \t]*v[ \t]+([^\n]*)", re.M)  # line body after the tag
+_OBJ_F = re.compile(rb"^[ \t]*f[ \t]+([^\n]*)", re.M)
+_OBJ_SLASH = re.compile(rb"/[^\s]*")
+
+
+def _parse_floats(text: bytes, path: Path, what: str) -> np.ndarray:
+    try:
+        return np.array(text.split(), dtype=np.float64)
+    except ValueError as exc:
+        raise MeshseqError(f"{path}: bad number in {what} ({_one_line(exc)})") from None
+
+
+def _obj_lines(data: bytes, tag: bytes, pattern: re.Pattern) -> tuple[bytes, int]:
+    """All ``tag`` lines of an OBJ (tag included), joined by newlines, and how many there are.
+
+    Fast path: the lines form one contiguous block (as every exporter writes them), found with
+    ``find``/``count``; otherwise a regex collects them from anywhere in the file.
+    """
+    start = 0 if data.startswith(tag) else data.find(b"\n" + tag) + 1
+    if start > 0 or data.startswith(tag):
+        last = data.rfind(b"\n" + tag) + 1
+        end = data.find(b"\n", max(last, start))
+        block = data[start:end if end >= 0 else len(data)]
+        n = block.count(b"\n" + tag) + 1
+        if block.count(b"\n") + 1 == n and n == data.count(b"\n" + tag) + int(start == 0):
+            return block, n
+    lines = pattern.findall(data)
+    return b"\n".join(tag + ln for ln in lines), len(lines)
+
+
+def _read_obj(data: bytes, path: Path) -> _Frame:
+    vblock, n_v = _obj_lines(data, b"v ", _OBJ_V)
+    if n_v == 0:
+        raise MeshseqError(f"{path}: no vertices ('v' lines) in OBJ file")
+    coords = _parse_floats(vblock.replace(b"v", b" "), path, "vertex coordinates")
+    if len(coords) == 3 * n_v:
+        vertices = coords.reshape(-1, 3)
+    else:  # some lines carry w or colours (or are broken): parse line by line
+        vlines = vblock.split(b"\n")
+        counts = np.fromiter(map(len, map(bytes.split, vlines)), dtype=np.int64, count=n_v) - 1
+        short = np.flatnonzero(counts < 3)
+        if len(short):
+            k = int(short[0])
+            raise MeshseqError(f"{path}: vertex {k} has {int(counts[k])} coordinates, expected 3 "
+                               f"(line {vlines[k].decode(errors='replace').strip()!r}); truncated file?")
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        vertices = coords[starts[:, None] + np.arange(3)]
+
+    face_text, n_f = _obj_lines(data, b"f ", _OBJ_F)
+
+    def parse_faces():
+        if n_f == 0:
+            raise MeshseqError(f"{path}: no faces ('f' lines) in OBJ file")
+        stripped = _OBJ_SLASH.sub(b"", face_text).replace(b"f", b" ")
+        try:
+            idx = np.array(stripped.split(), dtype=np.int64)
+        except ValueError as exc:
+            raise MeshseqError(f"{path}: bad face index ({_one_line(exc)})") from None
+        if (idx == 0).any():
+            raise MeshseqError(f"{path}: face index 0 (OBJ indices start at 1); truncated or corrupt file?")
+        if len(idx) == 3 * n_f:
+            counts = None
+        else:
+            counts = np.fromiter(map(len, map(bytes.split, stripped.split(b"\n"))), dtype=np.int64,
+                                 count=n_f)
+        if (idx < 0).any():  # relative indices: -1 is the last vertex defined before the face
+            v_pos = np.array([m.start() for m in _OBJ_V.finditer(data)])
+            f_pos = np.array([m.start() for m in _OBJ_F.finditer(data)])
+            defined = np.searchsorted(v_pos, f_pos)  # vertices before each face line
+            per_index = np.repeat(defined, 3 if counts is None else counts)
+            idx = np.where(idx < 0, idx + per_index + 1, idx)
+        idx = idx - 1
+        return _polygons_to_triangles(idx, counts, path)
+
+    return _Frame(vertices, face_text, parse_faces)
+
+
+def _polygons_to_triangles(idx: np.ndarray, counts: np.ndarray | None, path: Path) -> tuple[np.ndarray, int]:
+    """Flat polygon indices + per-polygon sizes -> fan triangles ``(F, 3)`` and #non-triangles."""
+    if counts is None:
+        return idx.reshape(-1, 3), 0
+    small = np.flatnonzero(counts < 3)
+    if len(small):
+        k = int(small[0])
+        raise MeshseqError(f"{path}: face {k} has {int(counts[k])} vertices, need at least 3; truncated file?")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    n_tri = counts - 2
+    poly = np.repeat(np.arange(len(counts)), n_tri)
+    local = np.arange(int(n_tri.sum())) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)  # 0..k-3
+    base = starts[poly]
+    tris = np.stack([idx[base], idx[base + local + 1], idx[base + local + 2]], axis=1)
+    return tris, int((counts > 3).sum())
+
+
+def _read_off(data: bytes, path: Path) -> _Frame:
+    lines = [ln.split(b"#", 1)[0].strip() for ln in data.split(b"\n")]
+    lines = [ln for ln in lines if ln]
+    header = lines[0].split()
+    if not header or not header[0].endswith(b"OFF"):
+        raise MeshseqError(f"{path}: not an OFF file (first line {lines[0][:20]!r})")
+    if header[0] != b"OFF" and header[0] not in (b"COFF", b"NOFF", b"CNOFF"):
+        raise MeshseqError(f"{path}: unsupported OFF variant {header[0].decode(errors='replace')}")
+    rest = header[1:]
+    body = lines[1:]
+    if not rest:
+        if not body:
+            raise MeshseqError(f"{path}: OFF header has no vertex/face counts")
+        rest, body = body[0].split(), body[1:]
+    try:
+        n_v, n_f = int(rest[0]), int(rest[1])
+    except (ValueError, IndexError):
+        raise MeshseqError(f"{path}: bad OFF counts line {b' '.join(rest)[:40]!r}") from None
+    if len(body) < n_v + n_f:
+        raise MeshseqError(f"{path}: OFF header promises {n_v} vertices and {n_f} faces but the file has "
+                           f"only {len(body)} data lines; truncated file?")
+    vlines = body[:n_v]
+    coords = _parse_floats(b"\n".join(vlines), path, "vertex coordinates")
+    if len(coords) == 3 * n_v:
+        vertices = coords.reshape(-1, 3)
+    else:
+        counts = np.fromiter(map(len, map(bytes.split, vlines)), dtype=np.int64, count=n_v)
+        if (counts < 3).any():
+            k = int(np.flatnonzero(counts < 3)[0])
+            raise MeshseqError(f"{path}: vertex {k} has {int(counts[k])} coordinates, expected 3")
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        vertices = coords[starts[:, None] + np.arange(3)]
+    flines = body[n_v:n_v + n_f]
+    face_text = b"\n".join(flines)
+
+    def parse_faces():
+        if n_f == 0:
+            raise MeshseqError(f"{path}: OFF file has no faces")
+        rows = [ln.split() for ln in flines]
+        try:
+            sizes = np.array([int(r[0]) for r in rows], dtype=np.int64)
+            idx = np.array([x for r, k in zip(rows, sizes) for x in r[1:1 + k]], dtype=np.int64)
+        except ValueError as exc:
+            raise MeshseqError(f"{path}: bad face line ({_one_line(exc)})") from None
+        if len(idx) != sizes.sum():
+            raise MeshseqError(f"{path}: a face line lists fewer indices than its count; truncated file?")
+        return _polygons_to_triangles(idx, None if (sizes == 3).all() else sizes, path)
+
+    return _Frame(vertices, face_text, parse_faces)
+
+
+def _read_ply(data: bytes, path: Path) -> _Frame:
+    import io as _io
+
+    import trimesh
+
+    header_end = data.find(b"end_header")
+    if not data.startswith(b"ply") or header_end < 0:
+        raise MeshseqError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header)")
+    m = re.search(rb"element\s+face\s+(\d+)", data[:header_end])
+    declared_faces = int(m.group(1)) if m else 0
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mesh = trimesh.load(_io.BytesIO(data), file_type="ply", process=False, maintain_order=True,
+                                force="mesh")
+    except Exception as exc:
+        raise MeshseqError(f"{path}: cannot read PLY ({_one_line(exc)}); truncated or corrupt file?") from None
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+    if len(vertices) == 0:
+        raise MeshseqError(f"{path}: no vertices in PLY file")
+    if declared_faces and len(faces) < declared_faces:
+        raise MeshseqError(f"{path}: header declares {declared_faces} faces, read {len(faces)}; "
+                           "truncated or corrupt file?")
+
+    def parse_faces():
+        if len(faces) == 0:
+            raise MeshseqError(f"{path}: no faces in PLY file (a point cloud is not a mesh)")
+        # trimesh fans polygons into triangles itself; the extra triangles count the polygons
+        # exactly for quads (an upper bound for larger polygons)
+        return faces, max(0, len(faces) - declared_faces)
+
+    return _Frame(vertices, None, parse_faces)
+
+
+# --------------------------------------------------------------------------------------------
+# Atomic output
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike, *, force: bool = False) -> Iterator[Path]:
+    """Write a file or folder atomically: yield a temporary sibling path, rename it onto ``path``.
+
+    Usage::
+
+        with atomic_output("out/model.safetensors", force=args.force) as tmp:
+            save_file(tensors, tmp)          # write a file at tmp ...
+        with atomic_output("out/frames") as tmp:
+            tmp.mkdir(); ...                 # ... or create a folder at tmp and fill it
+
+    * ``path`` existing (file or folder) without ``force`` -> MeshseqError before anything is
+      written (and again at the end, if it appeared meanwhile).
+    * The temporary path is in the same folder (same file system, so the rename is atomic) and
+      ends with ``path``'s name, so suffix-sensitive writers (``np.savez``, image writers) see the
+      right extension. Missing parent folders are created.
+    * On success the temporary is renamed onto ``path`` with ``os.replace``; an existing folder
+      (with ``force``) is moved aside first and deleted only after the new one is in place.
+    * On any exception (KeyboardInterrupt included) the temporary is removed, ``path`` is left
+      exactly as it was, and the exception propagates.
+    """
+    target = Path(path)
+    _refuse_existing(target, force)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    token = secrets.token_hex(4)
+    tmp = target.parent / f".tmp-{token}-{target.name}"
+    try:
+        yield tmp
+        if not os.path.lexists(tmp):
+            raise RuntimeError(f"atomic_output: nothing was written to the temporary path for {target}")
+        _refuse_existing(target, force)
+        if target.is_dir() and not target.is_symlink() or (os.path.lexists(target) and tmp.is_dir()):
+            old = target.parent / f".old-{token}-{target.name}"
+            os.replace(target, old)
+            try:
+                os.replace(tmp, target)
+            except BaseException:
+                os.replace(old, target)
+                raise
+            _remove(old)
+        else:
+            os.replace(tmp, target)
+    except BaseException:
+        _remove(tmp)
+        raise
+
+
+def _refuse_existing(target: Path, force: bool) -> None:
+    if not force and os.path.lexists(target):
+        kind = "folder" if target.is_dir() else "file"
+        raise MeshseqError(f"{target}: output {kind} already exists; use --force (force=True) to overwrite it")
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    elif os.path.lexists(path):
+        with contextlib.suppress(OSError):
+            os.remove(path)
+
+
+# --------------------------------------------------------------------------------------------
+# Saving
+
+
+def save_sequence(seq: MeshSequence, path: str | os.PathLike, *, format: str | None = None,
+                  force: bool = False, precision: int = 9) -> Path:
+    """Write a sequence atomically; refuse to overwrite unless ``force``.
+
+    Args:
+        seq: the sequence.
+        path: ``*.npz`` -> one NumPy archive (float64 vertices, faces, name, fps, vertex_map);
+            a path without a suffix (or ending in ``/``) -> a folder of frames
+            ``frame_0000.obj`` ... (``format="ply"`` for binary PLY frames, exact float64);
+            ``*.obj`` / ``*.ply`` -> a single mesh file (one-frame sequences only).
+        format: ``"npz"``, ``"obj"`` or ``"ply"``; default from the path (folder -> ``"obj"``).
+        force: replace an existing output (only once the new one is completely written).
+        precision: significant digits of OBJ coordinates (9 round-trips float32 exactly;
+            17 round-trips float64).
+
+    Returns:
+        The written path.
+    """
+    text = os.fspath(path)
+    target = Path(text)
+    as_folder = text.endswith(("/", os.sep)) or target.suffix == "" or target.is_dir()
+    suffix = "" if as_folder else target.suffix.lower().lstrip(".")
+    if format is not None and format not in SAVE_FORMATS:
+        raise MeshseqError(f"format {format!r} is not one of {', '.join(SAVE_FORMATS)}")
+    if suffix and suffix not in SAVE_FORMATS:
+        raise MeshseqError(f"{target}: unsupported output extension .{suffix} (use .npz, .obj, .ply "
+                           "or a folder path)")
+    if suffix and format is not None and format != suffix:
+        raise MeshseqError(f"{target}: extension .{suffix} contradicts format={format!r}")
+    fmt = format or suffix or "obj"
+    if as_folder and fmt == "npz":
+        raise MeshseqError(f"{target}: format 'npz' needs a file path ending in .npz")
+
+    _refuse_existing(target, force)
+    if fmt == "npz":
+        arrays = {"vertices": seq.vertices, "faces": seq.faces, "name": np.array(seq.name)}
+        if seq.fps is not None:
+            arrays["fps"] = np.array(seq.fps, dtype=np.float64)
+        if seq.vertex_map is not None:
+            arrays["vertex_map"] = seq.vertex_map
+        with atomic_output(target, force=force) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **arrays)
+        return target
+
+    writer = _obj_writer(seq, precision) if fmt == "obj" else _ply_writer(seq)
+    if not as_folder:
+        if seq.n_frames != 1:
+            raise MeshseqError(f"{target}: a .{fmt} file holds one frame but the sequence has {seq.n_frames}; "
+                               "give a folder path (e.g. out/) or a .npz")
+        with atomic_output(target, force=force) as tmp:
+            tmp.write_bytes(writer(0))
+        return target
+
+    width = max(4, len(str(seq.n_frames - 1)))
+    with atomic_output(target, force=force) as tmp:
+        tmp.mkdir()
+        for t in range(seq.n_frames):
+            (tmp / f"frame_{t:0{width}d}.{fmt}").write_bytes(writer(t))
+    return target
+
+
+def _obj_writer(seq: MeshSequence, precision: int):
+    head = f"# meshseq: {seq.name}, {seq.n_vertices} vertices, {seq.n_faces} faces\n".encode()
+    face_text = (("f %d %d %d\n" * seq.n_faces) % tuple((seq.faces + 1).ravel().tolist())).encode()
+    line = f"v %.{precision}g %.{precision}g %.{precision}g\n" * seq.n_vertices
+
+    def write(t: int) -> bytes:
+        return head + (line % tuple(seq.vertices[t].ravel().tolist())).encode() + face_text
+
+    return write
+
+
+def _ply_writer(seq: MeshSequence):
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment meshseq: {seq.name}\n"
+              f"element vertex {seq.n_vertices}\nproperty double x\nproperty double y\nproperty double z\n"
+              f"element face {seq.n_faces}\nproperty list uchar int vertex_indices\nend_header\n").encode()
+    face_rec = np.empty(seq.n_faces, dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+    face_rec["n"] = 3
+    face_rec["idx"] = seq.faces
+    face_bytes = face_rec.tobytes()
+
+    def write(t: int) -> bytes:
+        return header + seq.vertices[t].astype("<f8").tobytes() + face_bytes
+
+    return write
