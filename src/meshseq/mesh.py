@@ -177,6 +177,16 @@ class Topology:
         return [order[bounds[d]:bounds[d + 1]] for d in range(len(bounds) - 1)]
 
     @cached_property
+    def ring_mean_operator(self) -> sp.csr_matrix:
+        """Sparse ``(V, E)``: the mean over each vertex's incident edges of a per-edge value."""
+        e = self.edges
+        rows = np.concatenate([e[:, 0], e[:, 1]])
+        deg = np.maximum(self.degrees, 1).astype(np.float64)
+        return sp.csr_matrix(
+            (1.0 / deg[rows], (rows, np.tile(np.arange(len(e)), 2))), shape=(self.n_vertices, len(e))
+        )
+
+    @cached_property
     def boundary_edge_count(self) -> int:
         return int((edge_face_counts(self.faces)[1] == 1).sum())
 
@@ -228,16 +238,19 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     A vertex whose summed face normal vanishes gets the zero vector.
     """
     v = np.asarray(vertices, dtype=np.float64)
-    a, b, c = (v[..., faces[:, k], :] for k in range(3))
-    fn = np.cross(b - a, c - a)  # (..., F, 3), length = 2 * area
+    lead = v.shape[:-2]
     n_v = v.shape[-2]
-    scatter = _face_scatter(faces, n_v)
-    lead = fn.shape[:-2]
-    flat = np.moveaxis(fn, -2, 0).reshape(fn.shape[-2], -1)  # (F, prod(lead) * 3)
-    vn = (scatter @ flat).reshape((n_v,) + lead + (3,))
-    vn = np.moveaxis(vn, 0, -2)
-    norm = np.linalg.norm(vn, axis=-1, keepdims=True)
-    return np.divide(vn, norm, out=np.zeros_like(vn), where=norm > 0)
+    pv = np.ascontiguousarray(np.moveaxis(v.reshape((-1, n_v, 3)), 1, 0))  # (V, T, 3) vertex-major
+    a, b, c = (pv[faces[:, k]] for k in range(3))  # (F, T, 3) each
+    u, w = b - a, c - a
+    fn = np.empty(u.shape)  # cross product, length = 2 * area
+    fn[..., 0] = u[..., 1] * w[..., 2] - u[..., 2] * w[..., 1]
+    fn[..., 1] = u[..., 2] * w[..., 0] - u[..., 0] * w[..., 2]
+    fn[..., 2] = u[..., 0] * w[..., 1] - u[..., 1] * w[..., 0]
+    vn = (_face_scatter(faces, n_v) @ fn.reshape(len(faces), -1)).reshape(pv.shape)
+    norm = np.sqrt(np.einsum("vtc,vtc->vt", vn, vn))[..., None]
+    vn = np.divide(vn, norm, out=np.zeros_like(vn), where=norm > 0)
+    return np.moveaxis(vn, 0, 1).reshape(lead + (n_v, 3))
 
 
 def _face_scatter(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
@@ -253,15 +266,9 @@ def mean_ring_edge_length(vertices: np.ndarray, topology: Topology) -> np.ndarra
     v = np.asarray(vertices, dtype=np.float64)
     e = topology.edges
     length = np.linalg.norm(v[..., e[:, 1], :] - v[..., e[:, 0], :], axis=-1)  # (..., E)
-    n = topology.n_vertices
-    inc = sp.csr_matrix(
-        (np.ones(2 * len(e)), (np.concatenate([e[:, 0], e[:, 1]]), np.tile(np.arange(len(e)), 2))),
-        shape=(n, len(e)),
-    )
     lead = length.shape[:-1]
-    sums = inc @ np.moveaxis(length, -1, 0).reshape(len(e), -1)  # (V, prod(lead))
-    deg = np.maximum(topology.degrees, 1)[:, None]
-    return np.moveaxis((sums / deg).reshape((n,) + lead), 0, -1)
+    means = topology.ring_mean_operator @ np.moveaxis(length, -1, 0).reshape(len(e), -1)  # (V, prod(lead))
+    return np.moveaxis(means.reshape((topology.n_vertices,) + lead), 0, -1)
 
 
 def topology_hash(faces: np.ndarray, n_vertices: int) -> str:

@@ -1,0 +1,87 @@
+"""Scaling of ACAP features to [-0.95, 0.95] and back (method.md 1.7).
+
+``x' = 1.9 (x - min) / (max - min) - 0.95``. ``two-group`` (default, as the reference code): one
+min/max over the three rotation channels and one over the six S channels; ``per-channel``: one
+per channel (the paper's text). Fit on the training frames only; saved with the model as JSON.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+SCALING_MODES = ("two-group", "per-channel")
+_LOW, _HIGH = -0.95, 0.95
+_GROUPS = (slice(0, 3), slice(3, 9))
+
+
+@dataclass(frozen=True)
+class Scaling:
+    """Per-channel affine map; ``minimum`` and ``maximum`` are ``(9,)`` (equal within a group)."""
+
+    minimum: np.ndarray
+    maximum: np.ndarray
+    mode: str = "two-group"
+
+    @staticmethod
+    def fit(features: np.ndarray, mode: str = "two-group") -> "Scaling":
+        """Fit on features ``(..., 9)`` (the training frames)."""
+        x = np.asarray(features, dtype=np.float64).reshape(-1, 9)
+        if mode == "two-group":
+            lo, hi = np.empty(9), np.empty(9)
+            for g in _GROUPS:
+                lo[g], hi[g] = x[:, g].min(), x[:, g].max()
+        elif mode == "per-channel":
+            lo, hi = x.min(axis=0), x.max(axis=0)
+        else:
+            raise ValueError(f"unknown scaling mode {mode!r}; expected one of {SCALING_MODES}")
+        # A constant channel (e.g. every frame equal to the reference) would divide by zero.
+        span = hi - lo
+        pad = np.where(span > 1e-12, 0.0, 0.5)
+        return Scaling(lo - pad, hi + pad, mode)
+
+    @property
+    def _scale(self) -> np.ndarray:
+        return (_HIGH - _LOW) / (self.maximum - self.minimum)
+
+    def apply(self, features):
+        """Features ``(..., 9)`` -> scaled, numpy or torch (dtype and device kept)."""
+        lo, scale = self._as(features, self.minimum), self._as(features, self._scale)
+        return (features - lo) * scale + _LOW
+
+    def invert(self, scaled):
+        """Scaled ``(..., 9)`` -> features, numpy or torch."""
+        lo, scale = self._as(scaled, self.minimum), self._as(scaled, self._scale)
+        return (scaled - _LOW) / scale + lo
+
+    @staticmethod
+    def _as(like, values: np.ndarray):
+        if isinstance(like, np.ndarray):
+            return values
+        import torch
+
+        return torch.as_tensor(values, dtype=like.dtype, device=like.device)
+
+    def to_dict(self) -> dict:
+        return {"mode": self.mode, "minimum": self.minimum.tolist(), "maximum": self.maximum.tolist()}
+
+    @staticmethod
+    def from_dict(d: dict) -> "Scaling":
+        lo, hi = np.asarray(d["minimum"], dtype=np.float64), np.asarray(d["maximum"], dtype=np.float64)
+        if lo.shape != (9,) or hi.shape != (9,) or not np.all(hi > lo):
+            raise ValueError("scaling needs 9 minima below 9 maxima")
+        return Scaling(lo, hi, str(d.get("mode", "two-group")))
+
+    def save(self, path: str | Path) -> None:
+        """Write as JSON (atomically)."""
+        from meshseq.io import atomic_output
+
+        with atomic_output(Path(path), force=True) as tmp:
+            Path(tmp).write_text(json.dumps(self.to_dict(), indent=2))
+
+    @staticmethod
+    def load(path: str | Path) -> "Scaling":
+        return Scaling.from_dict(json.loads(Path(path).read_text()))
