@@ -100,29 +100,39 @@ def extract(
     return _pack_features(lambda frames: op(v[frames]), len(v), topo, consistency)
 
 
-def features_to_gradients(features: np.ndarray) -> np.ndarray:
+def features_to_gradients(features):
     """Deformation gradients ``T = R S`` ``(..., 3, 3)`` from features ``(..., 9)`` (method.md 2.1).
 
-    ``K = [[0, a, b], [-a, 0, c], [-b, -c, 0]]``, ``R = I + sin(t)/t K + (1 - cos t)/t^2 K^2``.
+    ``K = [[0, a, b], [-a, 0, c], [-b, -c, 0]]``, ``R = I + sin(t)/t K + (1 - cos t)/t^2 K^2``
+    (``R = I`` at ``t = 0``), ``S`` the symmetric matrix of channels 3..8. Written out entry by
+    entry (several times faster than batched 3x3 products). Takes numpy arrays or torch tensors
+    (differentiable, finite gradients at ``t = 0``) and returns the same kind.
     """
-    q = np.asarray(features, dtype=np.float64)
+    if isinstance(features, np.ndarray) or not hasattr(features, "dim"):
+        q, xp = np.asarray(features, dtype=np.float64), np
+    else:
+        import torch
+
+        q, xp = features, torch
     a, b, c = q[..., 0], q[..., 1], q[..., 2]
-    zero = np.zeros_like(a)
-    K = np.stack(
-        [np.stack([zero, a, b], -1), np.stack([-a, zero, c], -1), np.stack([-b, -c, zero], -1)], -2
-    )
-    t2 = a * a + b * b + c * c
-    t = np.sqrt(t2)
+    aa, bb, cc = a * a, b * b, c * c
+    t2 = aa + bb + cc
     small = t2 < 1e-12
-    safe_t = np.where(small, 1.0, t)
-    s1 = np.where(small, 1.0 - t2 / 6.0, np.sin(safe_t) / safe_t)
-    s2 = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(safe_t)) / (safe_t * safe_t))
-    R = np.eye(3) + s1[..., None, None] * K + s2[..., None, None] * (K @ K)
-    S = np.empty(q.shape[:-1] + (3, 3))
-    for ch, (i, j) in enumerate(S_ENTRIES):
-        S[..., i, j] = q[..., 3 + ch]
-        S[..., j, i] = q[..., 3 + ch]
-    return R @ S
+    t = xp.sqrt(xp.where(small, xp.ones_like(t2), t2))
+    s1 = xp.where(small, 1.0 - t2 / 6.0, xp.sin(t) / t)
+    s2 = xp.where(small, 0.5 - t2 / 24.0, (1.0 - xp.cos(t)) / (t * t))
+    # R = I + s1 K + s2 K^2, K^2 = [[-aa-bb, -bc, ac], [-bc, -aa-cc, -ab], [ac, -ab, -bb-cc]]
+    bc, ac, ab = s2 * b * c, s2 * a * c, s2 * a * b
+    r00, r11, r22 = 1.0 - s2 * (aa + bb), 1.0 - s2 * (aa + cc), 1.0 - s2 * (bb + cc)
+    sa, sb, sc = s1 * a, s1 * b, s1 * c
+    R = ((r00, sa - bc, sb + ac), (-sa - bc, r11, sc - ab), (-sb + ac, -sc - ab, r22))
+    s00, s01, s02, s11, s12, s22 = (q[..., k] for k in range(3, 9))
+    S = ((s00, s01, s02), (s01, s11, s12), (s02, s12, s22))
+    rows = [
+        xp.stack([R[i][0] * S[0][j] + R[i][1] * S[1][j] + R[i][2] * S[2][j] for j in range(3)], -1)
+        for i in range(3)
+    ]
+    return xp.stack(rows, -2)
 
 
 def component_offsets(vertices: np.ndarray, topology: Topology) -> np.ndarray:

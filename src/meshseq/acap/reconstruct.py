@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from meshseq.acap.features import component_centroids, component_offsets, features_to_gradients
+from meshseq.acap.features import FRAME_CHUNK, component_centroids, component_offsets, features_to_gradients
 from meshseq.align import place
 from meshseq.mesh import Topology, cotangent_weights
 
@@ -116,12 +116,20 @@ class Reconstructor:
                 with ``rigid``, best-fit rotation) it takes, or ``(T, 3)``/``(3,)`` centroids.
                 Default: centroid at the origin.
         """
-        b = self.rhs(gradients)  # (T, V, 3)
-        t, n = b.shape[0], b.shape[1]
-        bv = np.ascontiguousarray(b.transpose(1, 0, 2)).reshape(n, 3 * t)
-        x = np.zeros((n, 3 * t))
+        g = np.asarray(gradients, dtype=np.float64)
+        return self._solve_rhs(lambda frames: self.rhs(g[frames]), len(g), offsets, target, rigid)
+
+    def _solve_rhs(self, rhs_of, n_frames: int, offsets, target, rigid) -> np.ndarray:
+        """Solve for right-hand sides ``rhs_of(slice) -> (t, V, 3)``, built a chunk of frames at a time."""
+        n = self.topology.n_vertices
+        b = np.empty((n, n_frames, 3))  # vertex-major: one multi-column solve for all frames
+        for start in range(0, n_frames, FRAME_CHUNK):
+            frames = slice(start, start + FRAME_CHUNK)
+            b[:, frames] = rhs_of(frames).transpose(1, 0, 2)
+        bv = b.reshape(n, 3 * n_frames)
+        x = np.zeros((n, 3 * n_frames))
         x[self.free] = self._factor.solve(bv[self.free])
-        verts = x.reshape(n, t, 3).transpose(1, 0, 2)
+        verts = x.reshape(n, n_frames, 3).transpose(1, 0, 2)
         verts = self._place_components(verts, offsets)
         return place(verts, target, rigid=rigid)
 
@@ -135,7 +143,10 @@ class Reconstructor:
         """Vertices ``(T, V, 3)`` from ACAP features ``(T, V, 9)`` (unscaled); see ``solve_gradients``."""
         f = np.asarray(features, dtype=np.float64)
         single = f.ndim == 2
-        out = self.solve_gradients(features_to_gradients(f[None] if single else f), offsets, target, rigid)
+        f = f[None] if single else f
+        out = self._solve_rhs(
+            lambda frames: self.rhs(features_to_gradients(f[frames])), len(f), offsets, target, rigid
+        )
         return out[0] if single else out
 
     def _place_components(self, verts: np.ndarray, offsets: np.ndarray | None) -> np.ndarray:
