@@ -1,5 +1,206 @@
-"""meshseq commands: acap_cmds (filled in by its issue)."""
+"""meshseq commands of the feature layer: ``info``, ``features``, ``roundtrip``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from meshseq.errors import MeshseqError
 
 
 def register(sub) -> None:
-    """Add this module's sub-commands to the ``meshseq`` parser's ``sub`` (argparse subparsers)."""
+    """Add ``info``, ``features`` and ``roundtrip`` to the ``meshseq`` parser's subparsers."""
+    p = sub.add_parser("info", help="describe a mesh sequence (frames, vertices, faces, size, defects)",
+                       description="Print frames, vertices, faces, bounding-box diagonal, connected "
+                       "components, boundary / non-manifold edges and degenerate triangles of DATA.")
+    p.add_argument("data", metavar="DATA", nargs="+", help="the sequence (see `meshseq --help`)")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("features", help="extract ACAP features (T, V, 9) to a .npz",
+                       description="Extract ACAP deformation features of every frame against a "
+                       "reference frame and write them with what reconstruction needs.")
+    p.add_argument("data", metavar="DATA", nargs="+", help="the sequence (see `meshseq --help`)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.npz", help="output file (.npz)")
+    _feature_options(p)
+    p.add_argument("--float32", action="store_true", help="store features as float32 (half the size)")
+    p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
+    p.set_defaults(func=cmd_features)
+
+    p = sub.add_parser("roundtrip", help="extract features, reconstruct, report the error and speed",
+                       description="Extract ACAP features, reconstruct vertices from them, and compare "
+                       "with the input: per-vertex error (after centroid alignment) relative to the "
+                       "bounding-box diagonal, and frames per second of both directions.")
+    p.add_argument("data", metavar="DATA", nargs="+", help="the sequence (see `meshseq --help`)")
+    _feature_options(p)
+    p.add_argument("--rigid", action="store_true",
+                   help="also remove the best rotation (Kabsch) before measuring the error")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.set_defaults(func=cmd_roundtrip)
+
+
+def _feature_options(p: argparse.ArgumentParser) -> None:
+    from meshseq.acap import CONSISTENCY_MODES
+
+    p.add_argument("--consistency", choices=CONSISTENCY_MODES, default="temporal",
+                   help="rotation consistency: 'temporal' (default; each frame nearest the previous, "
+                   "no 2 pi jumps in time) or 'spatial' (per-frame BFS of the reference code)")
+    p.add_argument("--exact", action="store_true",
+                   help="exact encoding: minimum-norm correction of the gradients so that "
+                   "reconstruction returns the input (method.md 2.5)")
+    p.add_argument("--reference-frame", type=int, default=0, metavar="K",
+                   help="frame the features are taken against (default 0)")
+    p.add_argument("--no-normal-row", dest="normal_row", action="store_false",
+                   help="fit gradients without the normal term of the reference code")
+
+
+def _load(args):
+    from meshseq.io import load_sequence
+
+    spec = args.data[0] if len(args.data) == 1 else args.data
+    return load_sequence(spec)
+
+
+def _reference(seq, k: int) -> np.ndarray:
+    if not -seq.n_frames <= k < seq.n_frames:
+        raise MeshseqError(f"--reference-frame {k} is out of range: {seq.source or seq.name} has "
+                           f"{seq.n_frames} frames")
+    return seq.vertices[k]
+
+
+def describe(seq) -> dict:
+    """Summary numbers of a sequence (the ``info`` command's content)."""
+    from meshseq.mesh import Topology, bounding_box_diagonal, degenerate_faces
+
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    return {
+        "name": seq.name,
+        "source": seq.source,
+        "frames": seq.n_frames,
+        "vertices": seq.n_vertices,
+        "faces": seq.n_faces,
+        "fps": seq.fps,
+        "diag": bounding_box_diagonal(seq.vertices),
+        "components": topo.n_components,
+        "boundary_edges": topo.boundary_edge_count,
+        "nonmanifold_edges": topo.nonmanifold_edge_count,
+        "degenerate_faces": int(degenerate_faces(seq.vertices[0], seq.faces).sum()),
+        "unreferenced_vertices_dropped": seq.vertex_map is not None,
+    }
+
+
+def cmd_info(args) -> int:
+    info = describe(_load(args))
+    _print(info, args.json, "info")
+    return 0
+
+
+def cmd_features(args) -> int:
+    from pathlib import Path
+
+    from meshseq.acap import extract
+    from meshseq.acap.features import component_offsets
+    from meshseq.io import atomic_output
+    from meshseq.mesh import Topology
+
+    out = Path(args.output)
+    if out.suffix.lower() != ".npz":
+        raise MeshseqError(f"{out}: -o/--output must end in .npz")
+    if out.exists() and not args.force:
+        raise MeshseqError(f"{out}: output file already exists; use --force to overwrite it")
+    seq = _load(args)
+    ref = _reference(seq, args.reference_frame)
+    feats = extract(seq.vertices, seq.faces, reference=ref, consistency=args.consistency,
+                    normal_row=args.normal_row, exact=args.exact)
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    arrays = {
+        "features": feats.astype(np.float32 if args.float32 else np.float64),
+        "faces": seq.faces,
+        "reference": ref,
+        "component_offsets": component_offsets(seq.vertices, topo),
+        "consistency": np.array(args.consistency),
+        "exact": np.array(bool(args.exact)),
+        "normal_row": np.array(bool(args.normal_row)),
+    }
+    with atomic_output(out, force=args.force) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+    print(f"wrote {out}: features {feats.shape} ({args.consistency} consistency"
+          f"{', exact' if args.exact else ''})")
+    return 0
+
+
+def roundtrip_report(seq, *, consistency="temporal", exact=False, reference_frame=0,
+                     normal_row=True, rigid=False) -> dict:
+    """Extract, reconstruct, compare; the ``roundtrip`` command's numbers (see its help)."""
+    from meshseq.acap import Reconstructor, extract, features_to_gradients
+    from meshseq.acap.features import component_offsets
+    from meshseq.align import per_vertex_error
+    from meshseq.mesh import Topology, bounding_box_diagonal
+
+    v = seq.vertices
+    ref = _reference(seq, reference_frame)
+    t0 = time.perf_counter()
+    feats = extract(v, seq.faces, reference=ref, consistency=consistency, normal_row=normal_row, exact=exact)
+    t_extract = time.perf_counter() - t0
+    offsets = component_offsets(v, Topology.from_faces(seq.faces, seq.n_vertices))
+    t0 = time.perf_counter()
+    recon = Reconstructor(ref, seq.faces)
+    t_factor = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = recon.solve(feats, offsets=offsets, target=v)
+    t_solve = time.perf_counter() - t0
+    diag = bounding_box_diagonal(v)
+    err = per_vertex_error(out, v) / diag
+    report = {
+        "name": seq.name,
+        "frames": seq.n_frames,
+        "vertices": seq.n_vertices,
+        "diag": diag,
+        "consistency": consistency,
+        "exact": exact,
+        "mean_error_rel": float(err.mean()),
+        "max_error_rel": float(err.max()),
+        "extract_fps": seq.n_frames / t_extract,
+        "reconstruct_fps": seq.n_frames / t_solve,
+        "factor_seconds": t_factor,
+    }
+    if rigid:
+        report["mean_error_rel_rigid"] = float((per_vertex_error(out, v, rigid=True) / diag).mean())
+    if exact:
+        plain = extract(v, seq.faces, reference=ref, consistency=consistency, normal_row=normal_row)
+        g_plain, g_exact = features_to_gradients(plain), features_to_gradients(feats)
+        report["gradient_change_rel"] = float(
+            np.linalg.norm(g_exact - g_plain, axis=(-2, -1)).mean() / np.linalg.norm(g_plain, axis=(-2, -1)).mean())
+        report["feature_change_rel"] = float(
+            np.linalg.norm(feats - plain, axis=-1).mean() / np.linalg.norm(plain, axis=-1).mean())
+    return report
+
+
+def cmd_roundtrip(args) -> int:
+    seq = _load(args)
+    report = roundtrip_report(seq, consistency=args.consistency, exact=args.exact,
+                              reference_frame=args.reference_frame, normal_row=args.normal_row,
+                              rigid=args.rigid)
+    _print(report, args.json, f"ACAP round trip: {seq.name}")
+    return 0
+
+
+def _print(values: dict, as_json: bool, title: str) -> None:
+    if as_json:
+        print(json.dumps(values, indent=2))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title, show_header=False)
+    for key, value in values.items():
+        if isinstance(value, float):
+            text = f"{value:.3g}" if abs(value) < 1e-2 or abs(value) >= 1e4 else f"{value:.4g}"
+        else:
+            text = str(value)
+        table.add_row(key, text)
+    Console().print(table)
