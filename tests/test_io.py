@@ -221,6 +221,19 @@ def test_ply_ascii_with_quad_warns(tmp_path):
     assert seq.n_faces == 6
 
 
+def test_ply_keeps_duplicate_vertices_and_order(tmp_path):
+    # process=False: coincident vertices 1 and 4 stay separate; unused vertex 0 is dropped (with map).
+    path = tmp_path / "dup.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nproperty float y\n"
+                    "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+                    "9 9 9\n0 0 0\n1 0 0\n0 1 0\n0 0 0\n3 1 2 3\n3 4 3 2\n")
+    with pytest.warns(MeshseqWarning, match="dropped 1 unreferenced"):
+        seq = load_sequence(path)
+    np.testing.assert_array_equal(seq.vertices[0], [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0]])
+    np.testing.assert_array_equal(seq.faces, [[0, 1, 2], [3, 2, 1]])
+    np.testing.assert_array_equal(seq.vertex_map, [1, 2, 3, 4])
+
+
 def test_h5_addressing(tmp_path):
     path = tmp_path / "dyna_male.h5"
     verts = octa_frames(7)  # (T, V, 3)
