@@ -13,7 +13,7 @@ import pytest
 
 from conftest import shared_file
 from meshseq.errors import MeshseqError, MeshseqWarning
-from meshseq.io import MeshSequence, atomic_output, load_sequence, natural_key, save_sequence
+from meshseq.io import MeshSequence, atomic_output, check_output, load_sequence, natural_key, save_sequence
 
 # An octahedron: closed, manifold, 6 vertices, 8 faces.
 OCTA_V = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64)
@@ -552,6 +552,15 @@ def test_atomic_output_file_and_folder(tmp_path):
         with atomic_output(tmp_path / "never"):
             pass
     assert not (tmp_path / "never").exists()
+
+
+def test_check_output_fails_early(tmp_path):
+    assert check_output(tmp_path / "new.npz") == tmp_path / "new.npz"
+    (tmp_path / "old.npz").write_bytes(b"x")
+    with pytest.raises(MeshseqError, match=r"old\.npz: output file already exists; use --force"):
+        check_output(tmp_path / "old.npz")
+    assert check_output(tmp_path / "old.npz", force=True) == tmp_path / "old.npz"
+    assert (tmp_path / "old.npz").read_bytes() == b"x"
 
 
 def test_atomic_output_rechecks_existence_at_the_end(tmp_path):

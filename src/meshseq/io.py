@@ -628,6 +628,17 @@ def atomic_output(path: str | os.PathLike, *, force: bool = False) -> Iterator[P
         raise
 
 
+def check_output(path: str | os.PathLike, *, force: bool = False) -> Path:
+    """Fail early (MeshseqError, suggesting --force) if ``path`` exists and ``force`` is off.
+
+    Call it before a long computation whose result will go to ``path``; :func:`atomic_output`
+    checks again when it writes. Returns ``path`` as a Path.
+    """
+    target = Path(path)
+    _refuse_existing(target, force)
+    return target
+
+
 def _refuse_existing(target: Path, force: bool) -> None:
     if not force and os.path.lexists(target):
         kind = "folder" if target.is_dir() else "file"
