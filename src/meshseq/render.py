@@ -61,6 +61,7 @@ class Camera:
     height: int
     znear: float
     zfar: float
+    target: np.ndarray | None = None  # the point the camera looks at (framed centre), (3,)
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel coordinates ``(..., 2)`` (x right, y down, pixel centres at +0.5) and depth
@@ -162,6 +163,7 @@ def frame_camera(
         height=height,
         znear=max(0.5 * nearest, 1e-4 * scale),
         zfar=2.0 * farthest + scale,
+        target=centre,
     )
 
 
@@ -482,6 +484,20 @@ def _check_sequences(sequences: Sequence[np.ndarray], faces: np.ndarray, labels:
             t = int(np.argmax(~np.isfinite(s).reshape(s.shape[0], -1).all(axis=1)))
             raise MeshseqError(f"{label}: frame {t} has non-finite vertex coordinates")
     return seqs
+
+
+def check_same_connectivity(sequences: Sequence) -> None:
+    """MeshseqError unless every sequence (objects with ``vertices (T, V, 3)``, ``faces (F, 3)``
+    and ``name``) has the first one's vertex count and faces."""
+    first = sequences[0]
+    v0, f0 = np.shape(first.vertices)[1], np.asarray(first.faces)
+    for seq in sequences[1:]:
+        v, f = np.shape(seq.vertices)[1], np.asarray(seq.faces)
+        if v != v0 or not np.array_equal(f, f0):
+            raise MeshseqError(
+                f"{seq.name}: its connectivity ({v} vertices, {len(f)} faces) differs from "
+                f"{first.name} ({v0} vertices, {len(f0)} faces); sequences shown together must share one mesh"
+            )
 
 
 def _default_labels(n: int, labels: Sequence[str] | None) -> list[str]:

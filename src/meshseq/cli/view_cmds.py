@@ -1,5 +1,192 @@
-"""meshseq commands: view_cmds (filled in by its issue)."""
+"""meshseq commands to look at sequences: ``render`` (PNG film strip, GIF, MP4), ``export`` (.glb
+animation, or .npz / mesh folders) and ``view`` (interactive web viewer)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+from meshseq.errors import MeshseqError
+
+SEQ_HELP = "a mesh sequence: folder of OBJ/PLY/OFF frames, .npz, or FILE.h5:SEQUENCE"
+DEFAULT_FPS = 24.0
 
 
 def register(sub) -> None:
     """Add this module's sub-commands to the ``meshseq`` parser's ``sub`` (argparse subparsers)."""
+    p = sub.add_parser(
+        "render",
+        help="render sequences to a PNG film strip, a GIF or an MP4 (offscreen, no GPU needed)",
+        description="Render mesh sequences offscreen with a fixed camera framing all of them. "
+        "OUT.png: a labelled film strip (rows = sequences, columns = frames). OUT.gif / OUT.mp4: "
+        "the sequences side by side, animated. With --error-against GT, the ground truth comes "
+        "first and every SEQ is coloured by its per-vertex distance to GT, with a colour bar.",
+    )
+    p.add_argument("seqs", nargs="+", metavar="SEQ", help=SEQ_HELP + "; several are shown together "
+                   "and must share one mesh connectivity")
+    p.add_argument("-o", "--output", required=True, metavar="OUT", help="output file: .png, .gif or .mp4")
+    p.add_argument("--every", type=int, default=None, metavar="K",
+                   help="show every K-th frame (default: PNG at most 8 columns, GIF/MP4 every frame)")
+    p.add_argument("--error-against", metavar="GT", default=None,
+                   help="ground-truth sequence: colour each SEQ by its per-vertex error against GT")
+    p.add_argument("--labels", default=None, metavar="A,B,...",
+                   help="comma-separated row/column labels for the SEQs (default: their names)")
+    p.add_argument("--fps", type=float, default=None,
+                   help=f"frames per second of the sequence (default: the data's, else {DEFAULT_FPS:g}); "
+                   "with --every K a GIF/MP4 plays at FPS/K so time runs at its true speed")
+    p.add_argument("--height", type=int, default=None, metavar="PX",
+                   help="height of one image tile in pixels (default: 200 for PNG, 240 for GIF/MP4)")
+    p.add_argument("--up", default="y", help="the data's up axis: x, y, z, -x, -y or -z (default: y)")
+    p.add_argument("--title", default=None, help="a title above a PNG film strip")
+    p.add_argument("--renderer", choices=("auto", "pyrender", "matplotlib"), default="auto",
+                   help="auto: pyrender on EGL where available, else matplotlib (slower) with a note")
+    p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser(
+        "export",
+        help="export a sequence as an animated glTF (.glb), or as .npz / a folder of OBJ/PLY frames",
+        description="OUT.glb: glTF 2.0 binary, the first frame as the mesh and the others as morph "
+        "targets played by an animation at --fps (opens as an animation in Blender and in browser "
+        "glTF viewers). OUT.npz, or a folder path (OBJ frames; --format ply for binary PLY): the "
+        "sequence as meshseq reads it back.",
+    )
+    p.add_argument("seq", metavar="SEQ", help=SEQ_HELP)
+    p.add_argument("-o", "--output", required=True, metavar="OUT", help="OUT.glb, OUT.npz, or a folder (e.g. frames/)")
+    p.add_argument("--fps", type=float, default=None,
+                   help=f"frames per second of the animation (default: the data's, else {DEFAULT_FPS:g})")
+    p.add_argument("--up", default="y", help="the data's up axis (glTF is y-up; default: y)")
+    p.add_argument("--no-normals", action="store_true", help="leave vertex normals out of the .glb (smaller file)")
+    p.add_argument("--format", choices=("obj", "ply"), default=None, help="frame format of a folder output")
+    p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser(
+        "view",
+        help="play sequences side by side in a local web viewer",
+        description="Start a web viewer on 127.0.0.1 (this machine only) that plays the sequences "
+        "side by side with play/pause and a frame slider; open the printed address in a browser "
+        "(over SSH: ssh -L PORT:127.0.0.1:PORT host). Runs until Ctrl-C.",
+    )
+    p.add_argument("seqs", nargs="+", metavar="SEQ", help=SEQ_HELP + "; several must share one connectivity")
+    p.add_argument("--port", type=int, default=8080, help="port on 127.0.0.1 (default: 8080)")
+    p.add_argument("--fps", type=float, default=None, help=f"playback speed (default: the data's, else {DEFAULT_FPS:g})")
+    p.add_argument("--up", default="y", help="the data's up axis (default: y)")
+    p.add_argument("--paused", action="store_true", help="start paused at frame 0")
+    p.set_defaults(func=cmd_view)
+
+
+def _load(spec: str):
+    from meshseq.io import load_sequence
+
+    return load_sequence(spec)
+
+
+def _refuse_existing(path: str, force: bool) -> None:
+    """Fail fast (before loading or rendering anything) when the output exists without --force."""
+    if os.path.lexists(path) and not force:
+        raise MeshseqError(f"{path}: output exists; use --force to overwrite it")
+
+
+def _fps(args, seq) -> float:
+    fps = args.fps if args.fps is not None else (seq.fps or DEFAULT_FPS)
+    if not fps > 0:
+        raise MeshseqError(f"--fps {fps}: must be positive")
+    return float(fps)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from meshseq import render
+
+    suffix = render.check_output_suffix(args.output, render.IMAGE_SUFFIXES + render.ANIMATION_SUFFIXES)
+    _refuse_existing(args.output, args.force)
+    if args.every is not None and args.every < 1:
+        raise MeshseqError(f"--every {args.every}: must be at least 1")
+    if args.height is not None and not 16 <= args.height <= 2048:
+        raise MeshseqError(f"--height {args.height}: must be between 16 and 2048 pixels")
+    render._up_vector(args.up)  # validate before loading
+    seqs = [_load(s) for s in args.seqs]
+    labels = [s.name for s in seqs]
+    if args.labels is not None:
+        labels = [s.strip() for s in args.labels.split(",")]
+        if len(labels) != len(seqs):
+            raise MeshseqError(f"--labels: {len(labels)} labels for {len(seqs)} sequences")
+    gt = None
+    if args.error_against is not None:
+        gt = _load(args.error_against)
+        render.check_same_connectivity([gt] + seqs)
+    else:
+        render.check_same_connectivity(seqs)
+    gt_label = f"{gt.name} (ground truth)" if gt is not None else "ground truth"
+    common = dict(
+        labels=labels,
+        ground_truth=None if gt is None else gt.vertices,
+        ground_truth_label=gt_label,
+        up=args.up,
+        backend=args.renderer,
+    )
+    faces = seqs[0].faces
+    if suffix == ".png":
+        image = render.film_strip(
+            [s.vertices for s in seqs], faces, every=args.every, tile_height=args.height or 200,
+            title=args.title, **common,
+        )
+        render.save_image(args.output, image, force=args.force)
+        print(f"wrote {args.output} ({image.shape[1]}x{image.shape[0]} film strip)")
+    else:
+        every = args.every or 1
+        frames = render.animation_frames(
+            [s.vertices for s in seqs], faces, every=every, tile_height=args.height or 240, **common
+        )
+        fps = _fps(args, seqs[0]) / every
+        render.save_animation(args.output, frames, fps=fps, force=args.force)
+        print(f"wrote {args.output} ({len(frames)} frames, {frames.shape[2]}x{frames.shape[1]}, {fps:g} fps)")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    out = args.output
+    suffix = Path(out).suffix.lower()
+    is_folder = out.endswith(("/", os.sep)) or suffix == "" or Path(out).is_dir()
+    if not is_folder and suffix not in (".glb", ".npz", ".obj", ".ply"):
+        raise MeshseqError(f"{out}: unknown output extension {suffix!r}; expected .glb, .npz, .obj, .ply or a folder path")
+    if args.format is not None and not is_folder:
+        raise MeshseqError(f"--format {args.format}: only for a folder output, not {out}")
+    _refuse_existing(out.rstrip("/" + os.sep) or out, args.force)
+    seq = _load(args.seq)
+    if suffix == ".glb":
+        from meshseq.export import save_glb
+
+        fps = _fps(args, seq)
+        save_glb(out, seq.vertices, seq.faces, force=args.force, fps=fps, name=seq.name,
+                 normals=not args.no_normals, up=args.up)
+        size = Path(out).stat().st_size
+        print(f"wrote {out} ({seq.n_frames} frames as morph targets at {fps:g} fps, {size / 1e6:.1f} MB)")
+    else:
+        from meshseq.io import save_sequence
+
+        if args.fps is not None:
+            seq.fps = _fps(args, seq)
+        save_sequence(seq, out, format=args.format, force=args.force)
+        print(f"wrote {out} ({seq.n_frames} frames)")
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from meshseq.viewer import Viewer, check_port_free
+
+    check_port_free("127.0.0.1", args.port)  # before the (slow) loading
+    seqs = [_load(s) for s in args.seqs]
+    viewer = Viewer(seqs, port=args.port, fps=_fps(args, seqs[0]), up=args.up, playing=not args.paused)
+    try:
+        print(f"meshseq view: open {viewer.url} in a browser (Ctrl-C to stop)", flush=True)
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        print("meshseq view: stopped", file=sys.stderr)
+        return 0
+    finally:
+        viewer.stop()
