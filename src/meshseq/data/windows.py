@@ -1,0 +1,134 @@
+"""Held-out splits and training windows over feature sequences (numpy only).
+
+A data set of T frames is split into one contiguous held-out block (``holdout`` of the frames,
+starting at ``at``) and the training frames around it (one or two segments). A window is
+``window`` frames ``start, start + stride, ..., start + (window - 1) stride`` that lie inside one
+segment; every such window of every data set is equally likely.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from meshseq.errors import MeshseqError
+
+
+@dataclass(frozen=True)
+class Split:
+    """Frame ranges of one data set: ``train`` segments and the ``heldout`` block, as [start, stop)."""
+
+    n_frames: int
+    train: tuple[tuple[int, int], ...]
+    heldout: tuple[int, int]
+
+    def to_dict(self) -> dict:
+        return {"n_frames": self.n_frames, "train": [list(s) for s in self.train], "heldout": list(self.heldout)}
+
+    @staticmethod
+    def from_dict(d: dict) -> "Split":
+        return Split(int(d["n_frames"]), tuple(tuple(int(v) for v in s) for s in d["train"]), tuple(d["heldout"]))
+
+    def train_frames(self) -> np.ndarray:
+        """Indices ``(T_train,)`` of the training frames."""
+        return np.concatenate([np.arange(a, b) for a, b in self.train] or [np.zeros(0, np.int64)])
+
+
+def split_frames(n_frames: int, holdout: float = 0.2, at: str | float = "end") -> Split:
+    """One contiguous held-out block of ``round(holdout * n_frames)`` frames.
+
+    ``at``: ``"end"`` (default), ``"start"``, or a fraction in [0, 1] of the sequence where the
+    block starts (clipped so that it fits). ``holdout = 0`` holds nothing out.
+    """
+    if not 0.0 <= holdout < 1.0:
+        raise MeshseqError(f"--holdout {holdout}: expected a fraction in [0, 1)")
+    n_hold = int(round(holdout * n_frames))
+    if at == "end":
+        start = n_frames - n_hold
+    elif at == "start":
+        start = 0
+    else:
+        try:
+            frac = float(at)
+        except ValueError:
+            raise MeshseqError(f"--holdout-at {at!r}: expected 'start', 'end' or a fraction in [0, 1]") from None
+        if not 0.0 <= frac <= 1.0:
+            raise MeshseqError(f"--holdout-at {at!r}: expected 'start', 'end' or a fraction in [0, 1]")
+        start = min(int(round(frac * n_frames)), n_frames - n_hold)
+    stop = start + n_hold
+    train = tuple((a, b) for a, b in ((0, start), (stop, n_frames)) if b > a)
+    return Split(n_frames, train, (start, stop))
+
+
+def window_span(window: int, stride: int) -> int:
+    """Raw frames covered by one window."""
+    return (window - 1) * stride + 1
+
+
+def window_starts(segments, window: int, stride: int = 1) -> np.ndarray:
+    """All valid windows ``(N, 2)`` rows ``(dataset, start frame)``.
+
+    ``segments``: iterable of ``(dataset index, start, stop)``.
+    """
+    span = window_span(window, stride)
+    rows = [
+        np.stack([np.full(max(b - a - span + 1, 0), d), np.arange(a, max(b - span + 1, a))], 1)
+        for d, a, b in segments
+    ]
+    return np.concatenate(rows).astype(np.int64) if rows else np.zeros((0, 2), np.int64)
+
+
+class WindowSampler:
+    """Draws batches of training windows from several data sets stacked along frames.
+
+    ``offsets[d]`` is the row of data set ``d``'s first frame in the stacked feature array;
+    ``frame_index(batch)`` gives ``(batch, window)`` rows of that array.
+    """
+
+    def __init__(self, splits: list[Split], names: list[str], window: int, stride: int = 1):
+        if window < 2:
+            raise MeshseqError(f"--window {window}: a window needs at least 2 frames")
+        if stride < 1:
+            raise MeshseqError(f"--stride {stride}: expected a positive integer")
+        self.window, self.stride = window, stride
+        self.offsets = np.concatenate([[0], np.cumsum([s.n_frames for s in splits])[:-1]]).astype(np.int64)
+        segs = [(d, a, b) for d, s in enumerate(splits) for a, b in s.train]
+        self.starts = window_starts(segs, window, stride)
+        if len(self.starts) == 0:
+            longest = max((b - a for _, a, b in segs), default=0)
+            raise MeshseqError(
+                f"--window {window} --stride {stride} needs {window_span(window, stride)} consecutive "
+                f"training frames but the longest training part of {', '.join(names)} has {longest}; "
+                "use a shorter --window, --stride 1 or a smaller --holdout"
+            )
+
+    def rows(self, picks: np.ndarray) -> np.ndarray:
+        """``(N,)`` window numbers -> ``(N, window)`` rows of the stacked frames."""
+        d, a = self.starts[picks, 0], self.starts[picks, 1]
+        return self.offsets[d][:, None] + a[:, None] + self.stride * np.arange(self.window)[None, :]
+
+    def sample(self, rng: np.random.Generator, batch: int) -> np.ndarray:
+        """``batch`` windows drawn uniformly with replacement -> ``(batch, window)`` row indices."""
+        return self.rows(rng.integers(0, len(self.starts), size=batch))
+
+
+def heldout_rows(splits: list[Split], window: int, stride: int = 1, per_set: int = 4) -> np.ndarray:
+    """Fixed evaluation windows ``(N, w)`` from the held-out blocks (rows of the stacked frames).
+
+    ``w = min(window, frames the shortest block can hold at this stride)``; up to ``per_set``
+    evenly spaced windows per data set. Empty ``(0, 0)`` when nothing is held out (or a block is
+    shorter than 2 frames at this stride).
+    """
+    lens = [s.heldout[1] - s.heldout[0] for s in splits]
+    if not lens or min(lens) < 1 + stride:
+        return np.zeros((0, 0), np.int64)
+    w = min(window, (min(lens) - 1) // stride + 1)
+    span = window_span(w, stride)
+    offsets = np.concatenate([[0], np.cumsum([s.n_frames for s in splits])[:-1]])
+    out = []
+    for off, s in zip(offsets, splits):
+        a, b = s.heldout
+        starts = np.unique(np.linspace(a, b - span, num=per_set).round().astype(np.int64))
+        out.append(off + starts[:, None] + stride * np.arange(w)[None, :])
+    return np.concatenate(out).astype(np.int64)
