@@ -198,6 +198,14 @@ def test_obj_relative_indices_and_crlf(tmp_path):
     assert seq.n_vertices == 4
 
 
+def test_obj_indented_and_tab_separated_lines_are_not_missed(tmp_path):
+    path = tmp_path / "odd.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nvn 0 0 1\n  v 0 1 0\nv\t0 0 1\nf 1 3 2\nf 1 2 4\n\tf 2 3 4\nf\t1 4 3\n")
+    seq = load_sequence(path)
+    np.testing.assert_array_equal(seq.vertices[0], [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    np.testing.assert_array_equal(seq.faces, [[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
+
+
 def test_off_with_quad_is_read_in_order_and_triangulated(tmp_path):
     path = tmp_path / "box.off"
     # A square pyramid: one quad base, four triangles.

@@ -416,7 +416,8 @@ def _obj_lines(data: bytes, tag: bytes, pattern: re.Pattern) -> tuple[bytes, int
     ``find``/``count``; otherwise a regex collects them from anywhere in the file.
     """
     start = 0 if data.startswith(tag) else data.find(b"\n" + tag) + 1
-    if start > 0 or data.startswith(tag):
+    unusual = b"\n " in data or b"\n\t" in data or b"\n" + tag[:1] + b"\t" in data  # indents, tabs
+    if (start > 0 or data.startswith(tag)) and not unusual:
         last = data.rfind(b"\n" + tag) + 1
         end = data.find(b"\n", max(last, start))
         block = data[start:end if end >= 0 else len(data)]
