@@ -120,19 +120,32 @@ def test_real_data_roundtrip_default_and_exact(name):
     assert _rel_error(rec.solve(exact.astype(np.float32), target=v), v).mean() <= 1e-5
 
 
-def test_temporal_consistency_removes_two_pi_jumps():
+def test_temporal_consistency_removes_two_pi_jumps_of_a_part_spinning_past_two_pi():
+    v, f = _sphere()
+    angles = np.linspace(0, 3 * np.pi, 40)  # 1.5 turns about a fixed axis
+    seq = np.stack([v @ _rotation([0.3, 0.2, 1.0], a).T for a in angles])
+    temporal = extract(seq, f, consistency="temporal")
+    spatial = extract(seq, f, consistency="spatial")
+    step_t = np.linalg.norm(np.diff(temporal[..., :3], axis=0), axis=-1)
+    step_s = np.linalg.norm(np.diff(spatial[..., :3], axis=0), axis=-1)
+    assert np.linalg.norm(temporal[..., :3], axis=-1).max() == pytest.approx(3 * np.pi, abs=1e-6)
+    assert step_t.max() < 0.3  # the true step is 3 pi / 39 = 0.24 rad
+    assert step_s.max() > 5.0  # the per-shape method jumps by 2 pi (so the check above can fail)
+    # both are logs of the same rotations
+    assert np.abs(features_to_gradients(temporal) - features_to_gradients(spatial)).max() < 1e-8
+
+
+def test_temporal_consistency_has_far_fewer_jumps_on_a_twisting_limb():
     from meshseq.data.synthetic import twisting_limb
 
     seq = twisting_limb(frames=60)
     temporal = extract(seq.vertices, seq.faces, consistency="temporal")
     spatial = extract(seq.vertices, seq.faces, consistency="spatial")
-    step_t = np.linalg.norm(np.diff(temporal[..., :3], axis=0), axis=-1)
-    step_s = np.linalg.norm(np.diff(spatial[..., :3], axis=0), axis=-1)
-    # the twist exceeds 2 pi: temporal logs go beyond pi and never jump between frames
-    assert np.linalg.norm(temporal[..., :3], axis=-1).max() > 2 * np.pi
-    assert step_t.max() < 1.0
-    assert step_s.max() > 5.0  # the per-shape method does jump (so the check above can fail)
-    # both are valid logs of the same rotations: same gradients
+    jumps_t = (np.linalg.norm(np.diff(temporal[..., :3], axis=0), axis=-1) > np.pi).sum()
+    jumps_s = (np.linalg.norm(np.diff(spatial[..., :3], axis=0), axis=-1) > np.pi).sum()
+    # Near the 2 pi shell a rotation close to identity has an unstable axis, so some large steps
+    # are inherent to any log representation; temporal keeps them rare.
+    assert jumps_t <= jumps_s / 3
     assert np.abs(features_to_gradients(temporal) - features_to_gradients(spatial)).max() < 1e-8
 
 
