@@ -1,0 +1,108 @@
+"""The feature-layer commands: info, features, roundtrip, demo; help texts; one-line errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import shared_file
+from meshseq.cli import build_parser, main
+from meshseq.data.synthetic import twisting_limb
+from meshseq.io import save_sequence
+
+
+@pytest.fixture
+def limb_npz(tmp_path):
+    path = tmp_path / "limb.npz"
+    save_sequence(twisting_limb(frames=30), path)
+    return path
+
+
+def _subcommands():
+    parser = build_parser()
+    action = next(a for a in parser._actions if a.dest == "command")
+    return sorted(action.choices)
+
+
+@pytest.mark.parametrize("command", [None] + _subcommands())
+def test_every_command_explains_its_options(command, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"] if command is None else [command, "--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert "usage: meshseq" in out
+    if command is not None:
+        assert "-h, --help" in out and len(out.splitlines()) > 3
+
+
+def test_info_json(limb_npz, capsys):
+    assert main(["info", str(limb_npz), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frames"] == 30 and info["vertices"] == 386 and info["faces"] == 768
+    assert info["components"] == 1 and info["boundary_edges"] == 0 and info["degenerate_faces"] == 0
+    assert info["diag"] > 1.0
+
+
+def test_roundtrip_json_keys_and_accuracy(limb_npz, capsys):
+    assert main(["roundtrip", str(limb_npz), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    for key in ("frames", "vertices", "diag", "mean_error_rel", "max_error_rel", "extract_fps", "reconstruct_fps"):
+        assert key in r
+    assert r["frames"] == 30 and 0 < r["mean_error_rel"] < 2e-3
+    assert main(["roundtrip", str(limb_npz), "--json", "--exact", "--rigid"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["mean_error_rel"] < 1e-6 and r["mean_error_rel_rigid"] < 1e-6
+    assert 0 < r["gradient_change_rel"] < 0.5
+
+
+def test_roundtrip_on_real_data_meets_reference_accuracy(capsys):
+    assert main(["roundtrip", str(shared_file("pcow.npz")), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["frames"] == 204 and r["vertices"] == 2904
+    assert r["mean_error_rel"] <= 1.2 * 2.6e-4
+
+
+def test_features_writes_npz_and_refuses_to_overwrite(limb_npz, tmp_path, capsys):
+    out = tmp_path / "f.npz"
+    assert main(["features", str(limb_npz), "-o", str(out), "--consistency", "spatial"]) == 0
+    with np.load(out) as d:
+        assert d["features"].shape == (30, 386, 9) and d["features"].dtype == np.float64
+        assert str(d["consistency"]) == "spatial" and d["reference"].shape == (386, 3)
+    before = out.read_bytes()
+    assert main(["features", str(limb_npz), "-o", str(out), "--float32"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and str(out) in err and "--force" in err
+    assert out.read_bytes() == before
+    assert main(["features", str(limb_npz), "-o", str(out), "--float32", "--force"]) == 0
+    with np.load(out) as d:
+        assert d["features"].dtype == np.float32
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.npz", "limb.npz"]  # no temp files left
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["info", "/no/such/dir"], "/no/such/dir: path does not exist"),
+    (["roundtrip", "{data}", "--reference-frame", "99"], "--reference-frame 99 is out of range"),
+    (["features", "{data}", "-o", "{tmp}/out.txt"], "must end in .npz"),
+    (["demo", "--frames", "3"], "--frames 3"),
+])
+def test_bad_input_gives_one_line_error_and_writes_nothing(argv, fragment, limb_npz, tmp_path, capsys):
+    out_dir = tmp_path / "outputs"
+    out_dir.mkdir()
+    argv = [a.format(data=limb_npz, tmp=out_dir) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("meshseq: error: ") and err.count("\n") == 1 and fragment in err
+    assert list(out_dir.iterdir()) == []
+
+
+def test_console_script_runs_the_demo():
+    env = dict(os.environ, COLUMNS="160")
+    res = subprocess.run([sys.executable, "-m", "meshseq", "demo", "--frames", "24"],
+                         capture_output=True, text=True, timeout=300, env=env)
+    assert res.returncode == 0, res.stderr
+    assert "exact" in res.stdout and "least squares" in res.stdout
