@@ -98,6 +98,7 @@ def frame_camera(
     yfov_degrees: float = 30.0,
     margin: float = 0.05,
     max_aspect: float = 3.0,
+    view_from: np.ndarray | None = None,
 ) -> Camera:
     """A camera that frames all of ``points`` (any arrays ``(..., 3)``: whole sequences).
 
@@ -106,7 +107,8 @@ def frame_camera(
     degrees about ``up`` and raised by ``elevation`` degrees. The image is ``height`` pixels
     tall and as wide as the framed points need (aspect clamped to ``[1/2, max_aspect]``, width
     even); the distance is the smallest that keeps every point inside the image with ``margin``
-    (a fraction of the half-size) to spare.
+    (a fraction of the half-size) to spare. ``view_from`` (a direction from the points towards
+    the camera, not parallel to ``up``) replaces the automatic side view and the two angles.
     """
     if isinstance(points, np.ndarray):
         pts = points.reshape(-1, 3).astype(np.float64)
@@ -132,6 +134,10 @@ def frame_camera(
     az, el = math.radians(azimuth), math.radians(elevation)
     along = np.cross(upv, side)  # the other horizontal direction
     back = math.cos(el) * (math.cos(az) * side + math.sin(az) * along) + math.sin(el) * upv
+    if view_from is not None:
+        back = np.asarray(view_from, dtype=np.float64)
+        if abs(back @ upv) > 0.999 * np.linalg.norm(back):
+            raise MeshseqError("view direction must not be parallel to the up axis")
     back /= np.linalg.norm(back)
     right = np.cross(upv, back)
     right /= np.linalg.norm(right)

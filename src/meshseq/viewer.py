@@ -49,6 +49,9 @@ def check_port_free(host: str, port: int) -> None:
     if not 0 < int(port) < 65536:
         raise MeshseqError(f"--port {port}: must be between 1 and 65535")
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        # As the server will: reuse a port whose old connections linger in TIME_WAIT, but not
+        # one that something is listening on.
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             probe.bind((host, int(port)))
         except OSError as err:
@@ -116,10 +119,10 @@ class Viewer:
         self.host, self.port = host, port
         sign = "-" if up.startswith("-") else "+"
         server.scene.set_up_direction(f"{sign}{up.lstrip('+-').lower()}")
-        server.gui.configure_theme(control_layout="fixed")
 
         # Frame for a squarish window (the browser's shape is unknown) with room to spare.
-        framed = frame_camera(self._placed, up=up, max_aspect=1.0, yfov_degrees=45.0, margin=0.2)
+        framed = frame_camera(self._placed, up=up, max_aspect=1.0, yfov_degrees=45.0, margin=0.12,
+                              view_from=camera.pose[:3, 2])
         server.initial_camera.position = tuple(float(x) for x in framed.pose[:3, 3])
         server.initial_camera.look_at = tuple(float(x) for x in framed.target)
         server.initial_camera.fov = float(framed.yfov)
