@@ -364,3 +364,21 @@ def test_no_warnings_when_rendering_normally(horse):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         render.film_strip([verts[:2]], faces, every=1, tile_height=40)
+
+
+def test_cli_render_frames_window_labels_true_frame_numbers(tmp_path, capsys, horse):
+    verts, faces = horse
+    out = tmp_path / "w.png"
+    horse_path = str(shared_file("horse-gallop.npz"))
+    assert main(["render", horse_path, "-o", str(out), "--frames", "10:", "--every", "19", "--height", "50",
+                 "--labels", "h"]) == 0
+    got = np.asarray(Image.open(out).convert("RGB"))
+    expected = render.film_strip([verts[10:]], faces, labels=["h"], every=19, tile_height=50, first_frame=10)
+    np.testing.assert_array_equal(got, expected)  # frames 10 and 29, labelled so
+    other = render.film_strip([verts[10:]], faces, labels=["h"], every=19, tile_height=50)
+    assert not np.array_equal(other, expected)  # the labels differ
+    assert main(["render", horse_path, "-o", str(tmp_path / "x.png"), "--frames", "7"]) == 2
+    assert "--frames" in capsys.readouterr().err
+    assert main(["render", horse_path, "-o", str(tmp_path / "x.png"), "--frames", "60:"]) == 2
+    assert "no frames" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()

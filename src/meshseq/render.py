@@ -549,6 +549,7 @@ def film_strip(
     tile_height: int = 200,
     up: str = "y",
     title: str | None = None,
+    first_frame: int = 0,
     backend: str = "auto",
 ) -> np.ndarray:
     """A labelled film strip ``(H, W, 3)`` uint8: one row per sequence, one column per shown frame.
@@ -558,7 +559,8 @@ def film_strip(
     ``every`` defaults to the step that shows at most ``max_columns`` frames. With
     ``ground_truth (T', V, 3)`` (``T' >= T_i``), its row comes first and every other row is
     coloured by its per-vertex distance to it, with a colour bar. ``camera`` defaults to
-    :func:`frame_camera` of all rows.
+    :func:`frame_camera` of all rows. ``first_frame``: the number the column labels give
+    frame 0 (when the sequences are a window of longer ones).
     """
     labels = _default_labels(len(sequences), labels)
     seqs = _check_sequences(sequences, faces, labels)
@@ -582,7 +584,7 @@ def film_strip(
         camera.width,
         camera.height,
         row_labels=row_labels,
-        col_labels=[f"frame {t}" for t in frames],
+        col_labels=[f"frame {t + first_frame}" for t in frames],
         title=title,
         colorbar=colorbar,
     )
@@ -607,11 +609,13 @@ def animation_frames(
     camera: Camera | None = None,
     tile_height: int = 240,
     up: str = "y",
+    first_frame: int = 0,
     backend: str = "auto",
 ) -> np.ndarray:
     """Frames ``(N, H, W, 3)`` uint8 of an animation: the sequences side by side, labelled, with a
     frame counter; frames ``0, every, ...`` of the longest (a shorter one holds its last frame).
-    ``ground_truth`` as in :func:`film_strip` (shown first, the others as error heat maps)."""
+    ``ground_truth`` and ``first_frame`` as in :func:`film_strip` (the ground truth shown
+    first, the others as error heat maps)."""
     labels = _default_labels(len(sequences), labels)
     seqs = _check_sequences(sequences, faces, labels)
     if every < 1:
@@ -631,7 +635,7 @@ def animation_frames(
         for n, tile in enumerate(tiles):
             _paste(out[n], tile, slots[0, c])
     for n, t in enumerate(frames):
-        out[n] = _draw_text(out[n], f"frame {t} / {n_frames - 1}", (10, 8))
+        out[n] = _draw_text(out[n], f"frame {t + first_frame} / {n_frames - 1 + first_frame}", (10, 8))
     return out
 
 

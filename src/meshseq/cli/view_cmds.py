@@ -30,6 +30,8 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="output file: .png, .gif or .mp4")
     p.add_argument("--every", type=int, default=None, metavar="K",
                    help="show every K-th frame (default: PNG at most 8 columns, GIF/MP4 every frame)")
+    p.add_argument("--frames", default=None, metavar="START:STOP",
+                   help="only frames START..STOP-1 of every sequence (Python slice, e.g. 0:24 or 10:)")
     p.add_argument("--error-against", metavar="GT", default=None,
                    help="ground-truth sequence: colour each SEQ by its per-vertex error against GT")
     p.add_argument("--labels", default=None, metavar="A,B,...",
@@ -91,6 +93,20 @@ def _refuse_existing(path: str, force: bool) -> None:
         raise MeshseqError(f"{path}: output exists; use --force to overwrite it")
 
 
+def _frame_slice(text: str | None) -> slice | None:
+    """``"START:STOP"`` (either may be empty) -> a slice; None -> None."""
+    if text is None:
+        return None
+    parts = text.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        start, stop = (int(p) if p.strip() else None for p in parts)
+    except ValueError:
+        raise MeshseqError(f"--frames {text!r}: expected START:STOP, e.g. 0:24") from None
+    return slice(start, stop)
+
+
 def _fps(args, seq) -> float:
     fps = args.fps if args.fps is not None else (seq.fps or DEFAULT_FPS)
     if not fps > 0:
@@ -108,6 +124,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.height is not None and not 16 <= args.height <= 2048:
         raise MeshseqError(f"--height {args.height}: must be between 16 and 2048 pixels")
     render._up_vector(args.up)  # validate before loading
+    window = _frame_slice(args.frames)
     seqs = [_load(s) for s in args.seqs]
     labels = [s.name for s in seqs]
     if args.labels is not None:
@@ -120,12 +137,21 @@ def cmd_render(args: argparse.Namespace) -> int:
         render.check_same_connectivity([gt] + seqs)
     else:
         render.check_same_connectivity(seqs)
+    first_frame = 0
+    if window is not None:
+        first_frame = window.indices(max(s.n_frames for s in seqs))[0]
+        for s in seqs + ([gt] if gt is not None else []):
+            kept = s.vertices[window]
+            if kept.shape[0] == 0:
+                raise MeshseqError(f"--frames {args.frames}: no frames of {s.name} ({s.n_frames} frames) in that range")
+            s.vertices = kept
     gt_label = f"{gt.name} (ground truth)" if gt is not None else "ground truth"
     common = dict(
         labels=labels,
         ground_truth=None if gt is None else gt.vertices,
         ground_truth_label=gt_label,
         up=args.up,
+        first_frame=first_frame,
         backend=args.renderer,
     )
     faces = seqs[0].faces
