@@ -9,3 +9,12 @@ from meshseq.errors import MeshseqError, MeshseqWarning
 
 __version__ = "0.1.0"
 __all__ = ["MeshseqError", "MeshseqWarning", "__version__"]
+
+
+def __getattr__(name: str):
+    # ``meshseq.load`` imports torch only when first used, so ``import meshseq`` stays light.
+    if name == "load":
+        from meshseq.api import load
+
+        return load
+    raise AttributeError(f"module 'meshseq' has no attribute {name!r}")

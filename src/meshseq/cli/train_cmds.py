@@ -1,5 +1,98 @@
-"""meshseq commands: train_cmds (filled in by its issue)."""
+"""``meshseq train``: train a BD-LSTM on one or more mesh sequences."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
 
 
 def register(sub) -> None:
     """Add this module's sub-commands to the ``meshseq`` parser's ``sub`` (argparse subparsers)."""
+    p = sub.add_parser(
+        "train",
+        help="train a BD-LSTM on mesh sequences",
+        description="Train the bidirectional LSTM generator (shared-weight chains, tied mesh-convolutional "
+        "VAE) on ACAP features of one or more mesh sequences with one connectivity. Writes checkpoints "
+        "(safetensors + JSON), metrics.csv and, if tensorboard is installed, TensorBoard events to RUN. "
+        "Under torchrun it trains with DistributedDataParallel "
+        "(e.g. torchrun --nproc_per_node 4 $(which meshseq) train DATA --out RUN).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("data", nargs="+", metavar="DATA", help="mesh sequences (folder, .npz, FILE.h5:SEQ); "
+                   "several must share one connectivity; the first frame of the first is the reference mesh")
+    p.add_argument("--out", required=True, metavar="RUN", help="run folder for checkpoints and metrics")
+    p.add_argument("--iterations", type=int, default=7000, help="training iterations (the paper: 7000)")
+    p.add_argument("--variant", choices=("bd", "std-bd", "uni"), default="bd",
+                   help="bd: shared-weight bidirectional chains; std-bd: two untied LSTMs; uni: forward only")
+    p.add_argument("--window", type=int, default=32, help="frames per training window")
+    p.add_argument("--batch", type=int, default=8, help="windows per iteration (over all processes)")
+    p.add_argument("--stride", type=int, default=1, help="take every STRIDE-th frame (2: every other frame)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (weights, windows, sampling noise)")
+    p.add_argument("--device", default="auto", help="auto (cuda if available), cpu, cuda or cuda:N")
+    p.add_argument("--resume", action="store_true", help="continue RUN from its newest checkpoint "
+                   "(its stored options are used; --iterations may extend the run)")
+    p.add_argument("--force", action="store_true", help="start over in a non-empty RUN (deletes its checkpoints)")
+    m = p.add_argument_group("model")
+    m.add_argument("--latent", type=int, default=128, help="latent width = LSTM width")
+    m.add_argument("--lstm-layers", type=int, default=3, help="LSTM layers")
+    m.add_argument("--conv-layers", type=int, default=3, help="mesh convolution layers (9 -> 9, tanh)")
+    m.add_argument("--conv", choices=("sparse", "gather"), default="sparse",
+                   help="1-ring mean by a sparse matrix or a padded gather (sparse measured faster)")
+    l = p.add_argument_group("loss and optimiser")
+    l.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
+    l.add_argument("--w-rec", type=float, default=1.0, help="weight of L_rec")
+    l.add_argument("--w-bd", type=float, default=0.5, help="weight of L_bd (ignored by --variant uni)")
+    l.add_argument("--w-kl", type=float, default=0.1, help="weight of L_KL")
+    l.add_argument("--w-l2", type=float, default=0.1, help="weight of L_2 (sum of squared weights)")
+    l.add_argument("--no-kl", action="store_true", help="drop L_KL (paper Table 1 ablation)")
+    l.add_argument("--no-l2", action="store_true", help="drop L_2 (paper Fig. 3 ablation)")
+    d = p.add_argument_group("data")
+    d.add_argument("--holdout", type=float, default=0.2, help="fraction of every data set held out (one block)")
+    d.add_argument("--holdout-at", default="end", help="where the held-out block starts: start, end or a fraction")
+    d.add_argument("--scaling", choices=("two-group", "per-channel"), default="two-group",
+                   help="feature scaling to [-0.95, 0.95], fitted on the training frames")
+    d.add_argument("--consistency", choices=("temporal", "spatial"), default="temporal",
+                   help="rotation consistency of the ACAP features")
+    o = p.add_argument_group("logging")
+    o.add_argument("--eval-every", type=int, default=100, help="held-out loss every K iterations (0: at the end)")
+    o.add_argument("--checkpoint-every", type=int, default=500, help="checkpoint every K iterations (and at the end)")
+    o.add_argument("--log-every", type=int, default=10, help="write metrics every K iterations")
+    o.add_argument("--keep", type=int, default=2, help="checkpoints kept (newest)")
+    o.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_train)
+
+
+def _train(args) -> int:
+    from meshseq.errors import MeshseqError
+    from meshseq.train import TrainConfig, load_training_data, train
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise MeshseqError(f"--out {out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not (args.resume or args.force):
+        raise MeshseqError(f"--out {out}: already exists and is not empty (use --resume to continue it "
+                           "or --force to start over)")
+    config = TrainConfig(
+        iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride, seed=args.seed,
+        lr=args.lr, w_rec=args.w_rec, w_bd=args.w_bd, w_kl=0.0 if args.no_kl else args.w_kl,
+        w_l2=0.0 if args.no_l2 else args.w_l2, holdout=args.holdout, holdout_at=args.holdout_at,
+        scaling=args.scaling, consistency=args.consistency, eval_every=args.eval_every,
+        checkpoint_every=args.checkpoint_every, log_every=args.log_every, keep=args.keep,
+    )
+    model_options = {"variant": args.variant, "latent": args.latent, "lstm_layers": args.lstm_layers,
+                     "conv_layers": args.conv_layers, "conv_impl": args.conv}
+    data = load_training_data(args.data, consistency=args.consistency)
+    result = train(data, out, config, model_options, device=args.device, resume=args.resume, force=args.force,
+                   progress=not args.no_progress)
+    if result.get("checkpoint") and (not _dist_rank()):
+        held = result.get("heldout_rec")
+        print(f"trained to iteration {result['iteration']}: loss {result['loss']}"
+              + (f", held-out L_rec {held:.4g}" if held is not None else "")
+              + f"; checkpoint {result['checkpoint']}")
+    return 0
+
+
+def _dist_rank() -> int:
+    import os
+
+    return int(os.environ.get("RANK", "0"))

@@ -1,0 +1,167 @@
+"""``meshseq.load(RUN)``: a trained model for notebooks and scripts.
+
+    m = meshseq.load("runs/horse")          # a run folder (newest checkpoint) or a checkpoint folder
+    x = m.features(vertices)                # (T, V, 3) -> scaled ACAP features (T, V, 9)
+    mu = m.encode(x)                        # (T, V, 9) -> (T, latent)
+    s = m.initial_state(1, "forward")
+    s, x1 = m.step(s, x[:1])                # G(s, X) -> (s', X + dX)
+    frames = m.rollout(x[:1], 20)           # (1, 21, V, 9), free running
+    verts = m.vertices(frames[0])           # back to (21, V, 3) vertices
+
+Arrays in, arrays out: numpy inputs give numpy outputs, torch inputs give torch outputs. Features
+are in the model's scaled space ([-0.95, 0.95]); ``features``/``vertices`` convert to and from
+meshes (ACAP extraction against the reference mesh stored with the model, and reconstruction).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import torch
+
+from meshseq import checkpoint as ckpt
+from meshseq.errors import MeshseqError
+from meshseq.mesh import Topology
+from meshseq.model import BDLSTM, ModelConfig
+
+
+def _to_torch(x, device) -> tuple[torch.Tensor, bool]:
+    if isinstance(x, torch.Tensor):
+        return x.to(device=device, dtype=torch.float32), False
+    return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device), True
+
+
+def _back(t: torch.Tensor, as_numpy: bool):
+    return t.detach().cpu().numpy() if as_numpy else t
+
+
+class Model:
+    """A trained BD-LSTM generator with its reference mesh and feature scaling.
+
+    Attributes:
+        net: the ``BDLSTM`` torch module (eval mode).
+        config: its ``ModelConfig``; ``meta``: the checkpoint's JSON.
+        reference: ``(V, 3)`` float64 reference vertices; ``faces``: ``(F, 3)`` int64.
+        scaling: the ``meshseq.acap.Scaling`` fitted on the training frames.
+    """
+
+    def __init__(self, net: BDLSTM, meta: dict, reference: np.ndarray, faces: np.ndarray, device):
+        from meshseq.acap import Scaling
+
+        self.net = net.eval()
+        self.meta = meta
+        self.config: ModelConfig = net.config
+        self.reference = reference
+        self.faces = faces
+        self.scaling = Scaling.from_dict(meta["scaling"])
+        self.device = torch.device(device)
+        self._reconstructor = None
+
+    def __repr__(self) -> str:
+        c = self.config
+        return (f"meshseq.Model(variant={c.variant!r}, vertices={c.n_vertices}, latent={c.latent}, "
+                f"lstm_layers={c.lstm_layers}, iteration={self.meta.get('iteration')})")
+
+    @property
+    def iteration(self) -> int:
+        return int(self.meta["iteration"])
+
+    # -- meshes <-> features ------------------------------------------------------------------
+
+    def check_mesh(self, faces: np.ndarray, n_vertices: int, what: str = "the mesh") -> None:
+        """MeshseqError unless the connectivity is the one the model was trained on."""
+        ckpt.check_topology(self.meta, faces, n_vertices, what)
+
+    def features(self, vertices: np.ndarray, faces: np.ndarray | None = None) -> np.ndarray:
+        """Vertices ``(T, V, 3)`` -> scaled features ``(T, V, 9)`` float32 (against the reference)."""
+        from meshseq import acap
+
+        v = np.asarray(vertices, dtype=np.float64)
+        if v.ndim == 2:
+            v = v[None]
+        if faces is not None:
+            self.check_mesh(np.asarray(faces), v.shape[1])
+        elif v.shape[1] != self.config.n_vertices:
+            raise MeshseqError(f"vertices have {v.shape[1]} vertices, the model expects {self.config.n_vertices}")
+        consistency = self.meta.get("features", {}).get("consistency", "temporal")
+        f = acap.extract(v, self.faces, reference=self.reference, consistency=consistency)
+        return self.scaling.apply(f).astype(np.float32)
+
+    def vertices(self, x) -> np.ndarray:
+        """Scaled features ``(T, V, 9)`` -> vertices ``(T, V, 3)`` (centroid at the origin)."""
+        from meshseq import acap
+
+        if self._reconstructor is None:
+            self._reconstructor = acap.Reconstructor(self.reference, self.faces)
+        x = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+        return self._reconstructor.solve(self.scaling.invert(x.astype(np.float64)))
+
+    # -- the network --------------------------------------------------------------------------
+
+    def encode(self, x):
+        """Scaled features ``(..., V, 9)`` -> latent means ``mu`` ``(..., latent)``."""
+        t, as_np = _to_torch(x, self.device)
+        lead = t.shape[:-2]
+        with torch.no_grad():
+            mu, _ = self.net.encode(t.reshape(-1, *t.shape[-2:]))
+        return _back(mu.reshape(*lead, -1), as_np)
+
+    def decode(self, h):
+        """LSTM outputs / latent codes ``(..., latent)`` -> frame changes ``dX`` ``(..., V, 9)``."""
+        t, as_np = _to_torch(h, self.device)
+        lead = t.shape[:-1]
+        with torch.no_grad():
+            d = self.net.decode(t.reshape(-1, t.shape[-1]))
+        return _back(d.reshape(*lead, *d.shape[-2:]), as_np)
+
+    def initial_state(self, batch: int = 1, direction: str = "forward", value: float | None = None):
+        """``(h, c)``, each ``(layers, batch, latent)`` torch tensors: +0.1 forward, -0.1 backward."""
+        if direction not in ("forward", "backward"):
+            raise MeshseqError(f"direction {direction!r}: expected 'forward' or 'backward'")
+        fwd = direction == "forward"
+        h, c = self.net.initial_state(batch if fwd else 0, 0 if fwd else batch, self.device)
+        if value is not None:
+            h.fill_(value)
+            c.fill_(value)
+        return h, c
+
+    def step(self, state, x, direction: str = "forward", sample: bool = False):
+        """G(s, X) -> (s', X + dX) for frames ``(B, V, 9)``; ``direction`` picks the LSTM (std-bd)."""
+        t, as_np = _to_torch(x, self.device)
+        single = t.dim() == 2
+        if single:
+            t = t[None]
+        n_forward = t.shape[0] if direction == "forward" else 0
+        with torch.no_grad():
+            state, nxt, _, _ = self.net.step(state, t, sample=sample, n_forward=n_forward)
+        nxt = nxt[0] if single else nxt
+        return state, _back(nxt, as_np)
+
+    def rollout(self, first, steps: int, direction: str = "forward", state=None, sample: bool = False):
+        """Free-running frames ``(B, steps + 1, V, 9)`` from ``first`` ``(B, V, 9)``."""
+        t, as_np = _to_torch(first, self.device)
+        if state is None:
+            state = self.initial_state(t.shape[0], direction)
+        n_forward = t.shape[0] if direction == "forward" else 0
+        with torch.no_grad():
+            frames, _, _, _ = self.net.rollout(t, int(steps), state, sample=sample, n_forward=n_forward)
+        return _back(frames, as_np)
+
+
+def load(run: str | os.PathLike, device: str = "cpu") -> Model:
+    """Load a trained model from a run folder (its newest checkpoint) or a checkpoint folder.
+
+    Reads safetensors and JSON only (nothing is unpickled).
+    """
+    from meshseq.train import resolve_device
+
+    dev = resolve_device(device)
+    meta, tensors = ckpt.read_model(run)
+    config = ModelConfig.from_dict(meta["model"])
+    reference = tensors["reference.vertices"].numpy().astype(np.float64)
+    faces = tensors["reference.faces"].numpy().astype(np.int64)
+    ckpt.check_topology(meta, faces, reference.shape[0], what=f"{run}: the stored reference mesh")
+    net = BDLSTM(config, Topology.from_faces(faces, reference.shape[0]))
+    net.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    return Model(net.to(dev), meta, reference, faces, dev)

@@ -1,0 +1,545 @@
+"""Training the BD-LSTM: losses, the loop, metrics, checkpoints, resume, distributed data parallel.
+
+The loss of a batch of ground-truth windows ``X`` ``(B, n, V, 9)`` (scaled features), with
+``S^f`` the forward chain's frames and ``S^b`` the backward chain's (own order, ``S^b_1 = X_n``)::
+
+    L_rec = mean_windows mean_{i=2..n} ( ||S^f_i - X_i||^2 + ||S^b_i - X_{n+1-i}||^2 )
+    L_bd  = mean_windows mean_{i=1..n}   ||S^f_i - S^b_{n+1-i}||^2
+    L_KL  = mean_windows mean_steps sum_latent KL(N(mu, sigma^2) || N(0, 1))
+    L_2   = sum of squares of every weight matrix (biases excluded; tied weights counted once)
+    L     = w_rec L_rec + w_bd L_bd + w_kl L_KL + w_l2 L_2      (defaults 1, 0.5, 0.1, 0.1)
+
+``||.||^2`` sums over vertices and the 9 channels of one frame (the paper's sums over frames
+become means, so the weights do not depend on the window length). ``uni`` has no backward chain:
+its L_rec has the forward term only and L_bd = 0.
+
+The loop is a plain loop: sample windows (numpy generator), one batched forward of both chains,
+backward, Adam step; log every ``log_every`` iterations (rich progress bar, ``RUN/metrics.csv``,
+TensorBoard events in ``RUN/tensorboard`` when the ``tensorboard`` package is installed),
+held-out loss every ``eval_every``, a checkpoint every ``checkpoint_every`` and at the end.
+
+Distributed: started by ``torchrun`` (env ``RANK``/``WORLD_SIZE``/``MASTER_ADDR``...), every
+process joins a process group (NCCL on CUDA, Gloo on CPU) and trains a
+``DistributedDataParallel`` copy; all ranks draw the same global batch of ``batch`` windows and
+each takes its ``batch / world_size`` share, so a step sees the same windows as a single process
+would. Rank 0 writes metrics and checkpoints.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import math
+import os
+import random
+import sys
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from meshseq import checkpoint as ckpt
+from meshseq.data.windows import Split, WindowSampler, heldout_rows, split_frames
+from meshseq.errors import MeshseqError
+from meshseq.mesh import Topology, topology_hash
+from meshseq.model import BDLSTM, ModelConfig
+
+METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "heldout_rec", "heldout_bd")
+
+
+@dataclass
+class TrainConfig:
+    """Training options; stored in every checkpoint's JSON."""
+
+    iterations: int = 7000
+    window: int = 32
+    batch: int = 8
+    stride: int = 1
+    seed: int = 0
+    lr: float = 1e-3
+    w_rec: float = 1.0
+    w_bd: float = 0.5
+    w_kl: float = 0.1
+    w_l2: float = 0.1
+    holdout: float = 0.2
+    holdout_at: str = "end"
+    scaling: str = "two-group"
+    consistency: str = "temporal"
+    eval_every: int = 100
+    checkpoint_every: int = 500
+    log_every: int = 10
+    keep: int = 2
+
+    def __post_init__(self):
+        for name in ("iterations", "window", "batch", "stride"):
+            if int(getattr(self, name)) < 1:
+                raise MeshseqError(f"--{name} {getattr(self, name)}: expected a positive integer")
+        for name in ("eval_every", "checkpoint_every", "log_every"):
+            if int(getattr(self, name)) < 0:
+                raise MeshseqError(f"--{name.replace('_', '-')} {getattr(self, name)}: expected >= 0")
+        for name in ("w_rec", "w_bd", "w_kl", "w_l2"):
+            if not float(getattr(self, name)) >= 0:
+                raise MeshseqError(f"loss weight {name}={getattr(self, name)} must be >= 0")
+        if not float(self.lr) > 0:
+            raise MeshseqError(f"--lr {self.lr}: expected a positive number")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> "TrainConfig":
+        known = {f.name for f in fields(TrainConfig)}
+        return TrainConfig(**{k: v for k, v in d.items() if k in known})
+
+
+# --------------------------------------------------------------------------------------------
+# losses
+
+
+def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
+    """KL(N(mu, exp(logvar)) || N(0, I)) summed over the last axis, averaged over the rest."""
+    return (-0.5 * (1.0 + logvar - mu.square() - logvar.exp())).sum(-1).mean()
+
+
+def frame_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``||a - b||^2`` per frame: ``(B, n, V, C)`` pairs -> ``(B, n)``."""
+    return (a - b).square().sum((-2, -1))
+
+
+def window_losses(out: dict, windows: torch.Tensor) -> dict:
+    """Loss terms (unweighted) of ``BDLSTM.forward``'s output for ground truth ``(B, n, V, C)``."""
+    fwd, bwd = out["forward"], out["backward"]
+    rec = frame_error(fwd[:, 1:], windows[:, 1:]).mean()
+    if bwd is None:
+        bd = fwd.new_zeros(())
+    else:
+        rec = rec + frame_error(bwd[:, 1:], windows.flip(1)[:, 1:]).mean()
+        bd = frame_error(fwd, bwd.flip(1)).mean()
+    kl = kl_divergence(out["mu"], out["logvar"]) if out["mu"].numel() else fwd.new_zeros(())
+    return {"rec": rec, "bd": bd, "kl": kl}
+
+
+class WindowLoss(nn.Module):
+    """The whole training objective as one module (what DistributedDataParallel wraps).
+
+    ``forward(windows (B, n, V, C))`` -> ``(total, terms)``: one roll-out of both chains and the
+    weighted loss; terms are detached scalars for logging.
+    """
+
+    def __init__(self, model: BDLSTM, config: TrainConfig):
+        super().__init__()
+        self.model = model
+        self.weights = {"rec": config.w_rec, "bd": config.w_bd, "kl": config.w_kl, "l2": config.w_l2}
+
+    def forward(self, windows: torch.Tensor, sample: bool = True):
+        terms = window_losses(self.model(windows, sample=sample), windows)
+        terms["l2"] = sum(p.square().sum() for p in self.model.weight_parameters())
+        total = sum(self.weights[k] * v for k, v in terms.items() if self.weights[k] != 0)
+        return total, {k: v.detach() for k, v in terms.items()}
+
+
+# --------------------------------------------------------------------------------------------
+# data
+
+
+@dataclass
+class TrainingData:
+    """Raw ACAP features of one or more data sets sharing one connectivity.
+
+    ``features[d]`` ``(T_d, V, 9)`` float64; ``reference`` ``(V, 3)`` the mesh the features
+    refer to (first frame of the first data set); ``faces`` ``(F, 3)`` int64.
+    """
+
+    names: list[str]
+    sources: list[str]
+    features: list[np.ndarray]
+    faces: np.ndarray
+    reference: np.ndarray
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.reference.shape[0])
+
+
+def load_training_data(specs: list[str], consistency: str = "temporal") -> TrainingData:
+    """Load sequences (``meshseq.io.load_sequence``) and extract features against one reference.
+
+    MeshseqError if the data sets do not share one connectivity.
+    """
+    from meshseq import acap
+    from meshseq.io import load_sequence
+
+    if not specs:
+        raise MeshseqError("no training data given")
+    seqs = [load_sequence(s) for s in specs]
+    first = seqs[0]
+    for spec, s in zip(specs[1:], seqs[1:]):
+        if s.n_vertices != first.n_vertices or s.faces.shape != first.faces.shape or not np.array_equal(
+            s.faces, first.faces
+        ):
+            raise MeshseqError(
+                f"{spec}: connectivity differs from {specs[0]} ({s.n_vertices} vertices, {s.n_faces} faces "
+                f"vs {first.n_vertices} vertices, {first.n_faces} faces); data sets trained together "
+                "must share one mesh connectivity"
+            )
+    reference = first.vertices[0].copy()
+    feats = [acap.extract(s.vertices, s.faces, reference=reference, consistency=consistency) for s in seqs]
+    return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference)
+
+
+def resolve_device(device: str) -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise MeshseqError(f"--device {device}: CUDA is not available here (torch {torch.__version__})")
+    try:
+        return torch.device(device)
+    except RuntimeError:
+        raise MeshseqError(f"--device {device!r}: expected auto, cpu, cuda or cuda:N") from None
+
+
+# --------------------------------------------------------------------------------------------
+# distributed
+
+
+@dataclass
+class Dist:
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+    started_here: bool = False
+
+    @property
+    def active(self) -> bool:
+        return self.world > 1
+
+
+def init_distributed(device: torch.device) -> Dist:
+    """Join the process group torchrun describes (env RANK, WORLD_SIZE); a no-op otherwise."""
+    import torch.distributed as dist
+
+    if "RANK" not in os.environ or "WORLD_SIZE" not in os.environ:
+        return Dist()
+    world = int(os.environ["WORLD_SIZE"])
+    rank = int(os.environ["RANK"])
+    local = int(os.environ.get("LOCAL_RANK", rank))
+    if world <= 1:
+        return Dist(rank, world, local)
+    started = False
+    if not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+        started = True
+    return Dist(rank, world, local, started)
+
+
+# --------------------------------------------------------------------------------------------
+# metrics
+
+
+class Metrics:
+    """``RUN/metrics.csv`` (always) and TensorBoard events (if the package is installed)."""
+
+    def __init__(self, run_dir: Path, start_iteration: int, log=None):
+        self.path = run_dir / "metrics.csv"
+        kept = []
+        if start_iteration > 0 and self.path.is_file():
+            # keep the rows up to the checkpoint; rows after it (and a torn last line) are redone
+            with open(self.path, newline="") as fh:
+                for row in csv.DictReader(fh):
+                    try:
+                        if int(row["iteration"]) <= start_iteration and None not in row.values():
+                            kept.append(row)
+                    except (TypeError, ValueError, KeyError):
+                        pass
+        text = _io.StringIO()
+        w = csv.DictWriter(text, METRIC_FIELDS, lineterminator="\n")
+        w.writeheader()
+        w.writerows({k: r.get(k, "") for k in METRIC_FIELDS} for r in kept)
+        tmp = self.path.with_name(".tmp-metrics.csv")
+        tmp.write_text(text.getvalue())
+        os.replace(tmp, self.path)
+        self.fh = open(self.path, "a", newline="")
+        self.writer = csv.DictWriter(self.fh, METRIC_FIELDS, lineterminator="\n")
+        self.tb = None
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:
+            if log:
+                log(f"tensorboard is not installed: metrics go to {self.path} only "
+                    "(pip install 'meshseq[train]' for TensorBoard events)")
+        else:
+            self.tb = SummaryWriter(log_dir=str(run_dir / "tensorboard"), purge_step=start_iteration + 1)
+
+    def write(self, row: dict) -> None:
+        self.writer.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in METRIC_FIELDS})
+        self.fh.flush()
+        if self.tb is not None:
+            for k, v in row.items():
+                if k not in ("iteration", "seconds") and v is not None and v != "":
+                    self.tb.add_scalar(k.replace("heldout_", "heldout/"), float(v), row["iteration"])
+
+    def close(self) -> None:
+        self.fh.close()
+        if self.tb is not None:
+            self.tb.close()
+
+
+# --------------------------------------------------------------------------------------------
+# the loop
+
+
+def _prepare_run_dir(run_dir: Path, resume: bool, force: bool) -> None:
+    ours = ("checkpoints", "metrics.csv", "tensorboard", ".tmp-metrics.csv")
+    if run_dir.exists() and not run_dir.is_dir():
+        raise MeshseqError(f"--out {run_dir}: exists and is not a folder")
+    if run_dir.is_dir() and any(run_dir.iterdir()) and not resume:
+        if not force:
+            raise MeshseqError(f"--out {run_dir}: already exists and is not empty (use --resume to continue it "
+                               "or --force to start over)")
+        import shutil
+
+        for name in ours:
+            p = run_dir / name
+            if p.is_dir():
+                shutil.rmtree(p)
+            elif p.exists():
+                p.unlink()
+    run_dir.mkdir(parents=True, exist_ok=True)
+
+
+def _stderr(msg: str) -> None:
+    print(f"meshseq: {msg}", file=sys.stderr)
+
+
+def train(
+    data: TrainingData,
+    run_dir: str | os.PathLike,
+    config: TrainConfig | None = None,
+    model_options: dict | None = None,
+    device: str = "auto",
+    resume: bool = False,
+    force: bool = False,
+    progress: bool = True,
+    log=_stderr,
+) -> dict:
+    """Train (or resume training) a BD-LSTM on ``data``; write metrics and checkpoints to ``run_dir``.
+
+    Args:
+        data: features of the data sets (see :func:`load_training_data`).
+        config: training options (default ``TrainConfig()``). On resume the stored options are
+            used, except ``iterations``, which may extend the run.
+        model_options: ``ModelConfig`` fields other than ``n_vertices`` (variant, latent, ...).
+        device: ``auto`` (CUDA if available), ``cpu``, ``cuda`` or ``cuda:N``.
+        resume: continue from the newest checkpoint in ``run_dir`` (fresh start if there is none).
+        force: start over in a non-empty ``run_dir`` (removes its checkpoints and metrics).
+    Returns:
+        ``{"iteration", "checkpoint", "loss", "heldout_rec", "model"}`` after the last iteration
+        (``model``: the trained ``BDLSTM``).
+    """
+    from meshseq.acap import Scaling
+
+    config = config or TrainConfig()
+    run_dir = Path(run_dir)
+    dev = resolve_device(device)
+    dist_info = init_distributed(dev)
+    if dev.type == "cuda" and dist_info.active:
+        dev = torch.device("cuda", dist_info.local_rank)
+        torch.cuda.set_device(dev)
+    is_main = dist_info.rank == 0
+    log = log if (is_main and log) else (lambda msg: None)
+    if is_main:
+        _prepare_run_dir(run_dir, resume, force)
+    if dist_info.active:
+        torch.distributed.barrier()
+
+    faces, V = data.faces, data.n_vertices
+    topo = Topology.from_faces(faces, V)
+    for name, f in zip(data.names, data.features):
+        if f.ndim != 3 or f.shape[1:] != (V, 9):
+            raise MeshseqError(f"{name}: features must have shape (T, {V}, 9), got {f.shape}")
+
+    found = ckpt.latest_checkpoint(run_dir) if resume else None
+    if resume and found is None:
+        log(f"{run_dir}: no checkpoint yet, starting from iteration 0")
+    if found is not None:
+        meta, model_tensors = ckpt.read_model(found)
+        ckpt.check_topology(meta, faces, V, what="the training data")
+        if [d["source"] for d in meta["datasets"]] != data.sources:
+            raise MeshseqError(
+                f"--resume: {found} was trained on {[d['source'] for d in meta['datasets']]}, not {data.sources}"
+            )
+        iterations = config.iterations
+        config = TrainConfig.from_dict(meta["train"])
+        config.iterations = iterations
+        model_config = ModelConfig.from_dict(meta["model"])
+        scaling = Scaling.from_dict(meta["scaling"])
+        splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
+    else:
+        model_config = ModelConfig(n_vertices=V, **(model_options or {}))
+        splits = [split_frames(len(f), config.holdout, config.holdout_at) for f in data.features]
+        train_feats = np.concatenate([f[s.train_frames()] for f, s in zip(data.features, splits)])
+        if len(train_feats) == 0:
+            raise MeshseqError(f"--holdout {config.holdout}: leaves no training frames")
+        scaling = Scaling.fit(train_feats, mode=config.scaling)
+
+    if config.batch % dist_info.world:
+        raise MeshseqError(f"--batch {config.batch} must be a multiple of the number of processes ({dist_info.world})")
+    sampler = WindowSampler(splits, data.names, config.window, config.stride)
+    eval_rows = heldout_rows(splits, config.window, config.stride)
+    stacked = np.concatenate([scaling.apply(f) for f in data.features]).astype(np.float32)
+    frames = torch.from_numpy(stacked).to(dev)  # (sum T, V, 9)
+
+    torch.manual_seed(config.seed)
+    random.seed(config.seed)
+    np_rng = np.random.default_rng(config.seed)
+    model = BDLSTM(model_config, topo).to(dev)
+    names = [n for n, _ in model.named_parameters()]
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(0.9, 0.999))
+    start = 0
+    if found is not None:
+        model.load_state_dict({k[len("model."):]: v for k, v in model_tensors.items() if k.startswith("model.")})
+        smeta, stensors = ckpt.read_state(found)
+        ckpt.load_optimizer_state(optimizer, names, stensors, smeta["optimizer"])
+        ckpt.set_rng_state(stensors, smeta)
+        np_rng.bit_generator.state = smeta["numpy_rng"]
+        start = int(meta["iteration"])
+        log(f"resumed {found} at iteration {start}")
+    if dist_info.rank > 0:
+        # different sampling noise per rank (the windows stay common); not restored bit for bit
+        torch.manual_seed(config.seed + 7919 * dist_info.rank + start)
+
+    objective = WindowLoss(model, config)
+    if dist_info.active:
+        objective = nn.parallel.DistributedDataParallel(
+            objective,
+            device_ids=[dev.index] if dev.type == "cuda" else None,
+            broadcast_buffers=False,
+        )
+
+    datasets_meta = [
+        {"name": n, "source": s, "n_frames": int(len(f)), "split": sp.to_dict()}
+        for n, s, f, sp in zip(data.names, data.sources, data.features, splits)
+    ]
+    topo_meta = {"hash": topology_hash(faces, V), "n_vertices": V, "n_faces": int(len(faces))}
+
+    def save(iteration: int) -> Path:
+        tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
+        tensors["reference.vertices"] = torch.from_numpy(np.asarray(data.reference, dtype=np.float64))
+        tensors["reference.faces"] = torch.from_numpy(np.asarray(faces, dtype=np.int64))
+        meta = {
+            "model": model_config.to_dict(),
+            "train": config.to_dict(),
+            "scaling": scaling.to_dict(),
+            "topology": topo_meta,
+            "datasets": datasets_meta,
+            "features": {"reference": "first frame of data set 0", "consistency": config.consistency},
+            "torch_version": torch.__version__,
+            "world_size": dist_info.world,
+        }
+        opt_t, opt_meta = ckpt.optimizer_state(optimizer, names)
+        rng_t, rng_meta = ckpt.rng_state()
+        state_meta = {"optimizer": opt_meta, "numpy_rng": np_rng.bit_generator.state, **rng_meta}
+        return ckpt.save_checkpoint(run_dir, iteration, tensors, meta, {**opt_t, **rng_t}, state_meta, config.keep)
+
+    def evaluate() -> dict:
+        if len(eval_rows) == 0:
+            return {}
+        model.eval()
+        with torch.no_grad():
+            w = frames[torch.from_numpy(eval_rows).to(dev)]
+            terms = window_losses(model(w, sample=False), w)
+        model.train()
+        out = {"heldout_rec": float(terms["rec"])}
+        if model_config.variant != "uni":
+            out["heldout_bd"] = float(terms["bd"])
+        return out
+
+    metrics = Metrics(run_dir, start, log) if is_main else None
+    share = config.batch // dist_info.world
+    lo, hi = dist_info.rank * share, (dist_info.rank + 1) * share
+    bar = _progress_bar(config.iterations - start) if (is_main and progress) else None
+    last: dict = {"iteration": start, "checkpoint": str(found) if found else None, "loss": None,
+                  "heldout_rec": None}
+    t0 = time.perf_counter()
+    try:
+        if bar is not None:
+            bar.start()
+            task = bar.add_task("train", total=config.iterations, completed=start, terms="")
+        for it in range(start + 1, config.iterations + 1):
+            rows = sampler.sample(np_rng, config.batch)[lo:hi]
+            windows = frames[torch.from_numpy(rows).to(dev)]
+            optimizer.zero_grad(set_to_none=True)
+            total, terms = objective(windows)
+            total.backward()
+            optimizer.step()
+
+            row = None
+            if is_main and (config.log_every and it % config.log_every == 0 or it == config.iterations):
+                row = {"iteration": it, "seconds": round(time.perf_counter() - t0, 3), "loss": float(total.detach())}
+                row.update({k: float(v) for k, v in terms.items()})
+                last["loss"] = row["loss"]
+            if is_main and (config.eval_every and it % config.eval_every == 0 or it == config.iterations):
+                row = row or {"iteration": it, "seconds": round(time.perf_counter() - t0, 3)}
+                row.update(evaluate())
+                last["heldout_rec"] = row.get("heldout_rec")
+            if row is not None:
+                metrics.write(row)
+                if bar is not None:
+                    bar.update(task, terms=_terms_text(row))
+            if bar is not None:
+                bar.update(task, completed=it)
+            if config.checkpoint_every and it % config.checkpoint_every == 0 or it == config.iterations:
+                if is_main:
+                    last["checkpoint"] = str(save(it))
+                if dist_info.active:
+                    torch.distributed.barrier()
+            last["iteration"] = it
+        if start >= config.iterations and is_main:
+            log(f"{run_dir}: already at iteration {start} (>= --iterations {config.iterations}); nothing to do")
+    finally:
+        if bar is not None:
+            bar.stop()
+        if metrics is not None:
+            metrics.close()
+        if dist_info.started_here:
+            torch.distributed.destroy_process_group()
+    last["model"] = model
+    return last
+
+
+def _terms_text(row: dict) -> str:
+    keys = ("loss", "rec", "bd", "kl", "l2", "heldout_rec")
+    return " ".join(f"{k}={row[k]:.4g}" for k in keys if row.get(k) is not None)
+
+
+def _progress_bar(total: int):
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    class _Rate(TextColumn):
+        def render(self, task):
+            speed = task.finished_speed or task.speed
+            from rich.text import Text
+
+            return Text("?" if speed is None else (f"{speed:.2f} it/s" if speed >= 1 else f"{1 / speed:.2f} s/it"))
+
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        _Rate(""),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[terms]}"),
+        transient=False,
+    )

@@ -1,0 +1,187 @@
+"""The BD-LSTM generator: mesh convolution, tied encoder/decoder, chains and variants."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from meshseq.data.synthetic import twisting_limb
+from meshseq.errors import MeshseqError
+from meshseq.mesh import Topology
+from meshseq.model import BDLSTM, MeshConv, ModelConfig, NeighborMean, count_step_flops
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def limb():
+    seq = twisting_limb(frames=6, rings=8, segments=6)
+    return Topology.from_faces(seq.faces, seq.n_vertices)
+
+
+def make(topo, variant="bd", conv="sparse", latent=16, layers=2, seed=0):
+    torch.manual_seed(seed)
+    cfg = ModelConfig(n_vertices=topo.n_vertices, latent=latent, lstm_layers=layers, variant=variant, conv_impl=conv)
+    return BDLSTM(cfg, topo)
+
+
+def ring_mean_reference(x: np.ndarray, topo: Topology) -> np.ndarray:
+    """Brute-force 1-ring mean (B, V, C) from the adjacency lists."""
+    adj = topo.adjacency.tolil().rows
+    return np.stack([np.stack([x[:, list(r)].mean(1) for r in adj], 1)])[0]
+
+
+@pytest.mark.parametrize("impl", ["sparse", "gather"])
+def test_neighbor_mean_matches_brute_force_and_gradients_agree(limb, impl):
+    x = torch.randn(3, limb.n_vertices, 5, dtype=torch.float32, requires_grad=True)
+    ring = NeighborMean(limb, impl)
+    y = ring(x)
+    np.testing.assert_allclose(y.detach().numpy(), ring_mean_reference(x.detach().numpy(), limb), atol=1e-6)
+    # backward = transpose of the mean operator: <A x, g> = <x, A^T g>
+    g = torch.randn_like(y)
+    (gx,) = torch.autograd.grad(y, x, g)
+    A = torch.from_numpy((topo_adj := limb.adjacency.toarray()) / topo_adj.sum(1, keepdims=True)).float()
+    expected = torch.einsum("vw,bvc->bwc", A, g)
+    torch.testing.assert_close(gx, expected, atol=1e-5, rtol=1e-5)
+
+
+def test_mesh_conv_is_paper_eq2(limb):
+    ring = NeighborMean(limb, "sparse")
+    conv = MeshConv(9, 9, ring)
+    x = torch.randn(2, limb.n_vertices, 9)
+    W1, W2 = conv.weight[:9].detach(), conv.weight[9:].detach()
+    with torch.no_grad():
+        conv.bias.uniform_()
+        expected = x @ W1 + torch.from_numpy(ring_mean_reference(x.numpy(), limb)).float() @ W2 + conv.bias
+        torch.testing.assert_close(conv(x), expected, atol=1e-5, rtol=1e-5)
+        b = torch.randn(9)
+        torch.testing.assert_close(
+            conv(x, transpose=True, bias=b),
+            x @ W1.t() + torch.from_numpy(ring_mean_reference(x.numpy(), limb)).float() @ W2.t() + b,
+            atol=1e-5, rtol=1e-5,
+        )
+
+
+def test_shapes_of_every_variant(limb):
+    V = limb.n_vertices
+    for variant in ("bd", "std-bd", "uni"):
+        m = make(limb, variant)
+        w = torch.randn(3, 5, V, 9) * 0.1
+        out = m(w)
+        assert out["forward"].shape == (3, 5, V, 9)
+        torch.testing.assert_close(out["forward"][:, 0], w[:, 0])
+        rows = 3 if variant == "uni" else 6
+        assert out["mu"].shape == out["logvar"].shape == (4, rows, 16)
+        if variant == "uni":
+            assert out["backward"] is None
+        else:
+            assert out["backward"].shape == (3, 5, V, 9)
+            torch.testing.assert_close(out["backward"][:, 0], w[:, -1])  # backward chain starts at X_n
+        mu, logvar = m.encode(w[:, 0])
+        assert mu.shape == (3, 16) and logvar.shape == (3, 16)
+        assert m.decode(mu).shape == (3, V, 9)
+
+
+def test_step_is_x_plus_decoded_lstm_output(limb):
+    m = make(limb)
+    x = torch.randn(2, limb.n_vertices, 9) * 0.1
+    state = m.initial_state(2)
+    new_state, nxt, mu, _ = m.step(state, x)  # evaluation: z = mu
+    out, (h, c) = m.lstm(mu.unsqueeze(0), state)
+    torch.testing.assert_close(nxt, x + m.decode(out[0]))
+    torch.testing.assert_close(new_state[0], h)
+    torch.testing.assert_close(new_state[1], c)
+
+
+def test_initial_states_are_plus_and_minus_point_one(limb):
+    m = make(limb)
+    h, c = m.initial_state(2, 3)
+    assert h.shape == c.shape == (2, 5, 16)
+    assert torch.all(h[:, :2] == 0.1) and torch.all(c[:, :2] == 0.1)
+    assert torch.all(h[:, 2:] == -0.1) and torch.all(c[:, 2:] == -0.1)
+
+
+def test_decoder_is_tied_to_encoder(limb):
+    m = make(limb)
+    names = dict(m.named_parameters())
+    V, L = limb.n_vertices, 16
+    big = [n for n, p in names.items() if p.numel() >= V * 9 * L]
+    assert big == ["fc.weight"]  # one big FC matrix, no decoder copy
+    h = torch.randn(2, L)
+    before = m.decode(h).detach().clone()
+    with torch.no_grad():
+        m.fc.weight.add_(0.01 * torch.randn_like(m.fc.weight))
+    assert not torch.allclose(m.decode(h), before)
+    # the decoder convolutions are the encoder's weights, in reverse order
+    with torch.no_grad():
+        m.decode(h)
+        before = m.decode(h).clone()
+        m.convs[-1].weight.mul_(1.5)
+        after_last = m.decode(h).clone()
+    assert not torch.allclose(before, after_last)
+    # gradients of the decoder reach the encoder's weights
+    m.zero_grad()
+    m.decode(h).square().sum().backward()
+    assert m.fc.weight.grad is not None and m.fc.weight.grad.abs().sum() > 0
+    assert all(c.weight.grad.abs().sum() > 0 for c in m.convs)
+    assert all(b.grad is not None for b in m.dec_conv_bias)
+
+
+def test_shared_variant_has_one_parameter_set_and_batches_both_chains(limb):
+    bd, std = make(limb, "bd"), make(limb, "std-bd")
+    assert bd.lstm_backward is None
+    n_bd = sum(p.numel() for p in bd.parameters())
+    n_std = sum(p.numel() for p in std.parameters())
+    assert n_std - n_bd == sum(p.numel() for p in std.lstm_backward.parameters()) > 0
+    w = torch.randn(2, 4, limb.n_vertices, 9) * 0.1
+    out = bd(w, sample=False)
+    # the backward chain is the same generator run on the reversed window from -0.1
+    frames, _, _, _ = bd.rollout(w.flip(1)[:, 0], 3, bd.initial_state(0, 2), n_forward=0)
+    torch.testing.assert_close(out["backward"], frames, atol=1e-6, rtol=1e-6)
+    frames_f, _, _, _ = bd.rollout(w[:, 0], 3, bd.initial_state(2, 0))
+    torch.testing.assert_close(out["forward"], frames_f, atol=1e-6, rtol=1e-6)
+    # std-bd: the backward chain uses its own LSTM
+    out_std = std(w, sample=False)
+    frames_wrong, _, _, _ = std.rollout(w.flip(1)[:, 0], 3, std.initial_state(0, 2), n_forward=2)
+    frames_right, _, _, _ = std.rollout(w.flip(1)[:, 0], 3, std.initial_state(0, 2), n_forward=0)
+    torch.testing.assert_close(out_std["backward"], frames_right, atol=1e-6, rtol=1e-6)
+    assert not torch.allclose(out_std["backward"][:, 1:], frames_wrong[:, 1:])
+
+
+def test_gather_and_sparse_models_agree(limb):
+    a, b = make(limb, conv="sparse"), make(limb, conv="gather")
+    b.load_state_dict(a.state_dict())
+    w = torch.randn(2, 4, limb.n_vertices, 9) * 0.1
+    torch.testing.assert_close(a(w, sample=False)["forward"], b(w, sample=False)["forward"], atol=1e-5, rtol=1e-5)
+
+
+def test_sampling_noise_only_in_training_mode(limb):
+    m = make(limb)
+    w = torch.randn(2, 4, limb.n_vertices, 9) * 0.1
+    torch.testing.assert_close(m(w, sample=False)["forward"], m(w, sample=False)["forward"])
+    assert not torch.equal(m(w, sample=True)["forward"], m(w, sample=True)["forward"])
+
+
+def test_bad_config_is_a_meshseq_error(limb):
+    with pytest.raises(MeshseqError, match="variant"):
+        ModelConfig(n_vertices=10, variant="bidirectional")
+    with pytest.raises(MeshseqError, match="conv"):
+        ModelConfig(n_vertices=10, conv_impl="dense")
+    with pytest.raises(MeshseqError, match="vertices"):
+        BDLSTM(ModelConfig(n_vertices=limb.n_vertices + 1), limb)
+
+
+def test_flop_count_formulas(limb):
+    cfg = ModelConfig(n_vertices=limb.n_vertices, latent=16, lstm_layers=2)
+    f = count_step_flops(cfg, limb, batch=4)
+    V, nnz = limb.n_vertices, int(limb.degrees.sum())
+    assert f["fc"] == 4 * 2 * (2 * V * 9 * 16)  # encoder FC and its transpose
+    assert f["lstm"] == 4 * 2 * (2 * 4 * 16 * 32)  # 2 layers, 4 gates, [x, h] -> 16
+    assert f["conv"] == 4 * 3 * 2 * (2 * 2 * V * 81 + 2 * nnz * 9)

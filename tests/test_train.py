@@ -1,0 +1,216 @@
+"""Training: splits and windows, losses, the loop, the CLI and the notebook API."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+import meshseq
+from meshseq import acap
+from meshseq.cli import main
+from meshseq.data.synthetic import twisting_limb
+from meshseq.data.windows import WindowSampler, heldout_rows, split_frames, window_starts
+from meshseq.errors import MeshseqError
+from meshseq.io import save_sequence
+from meshseq.train import TrainConfig, TrainingData, load_training_data, train, window_losses
+
+SMALL = {"latent": 16, "lstm_layers": 2}
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny models run fastest, and steadiest on a shared machine, on one thread."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def limb_data(frames=40, seed=0):
+    seq = twisting_limb(frames=frames, rings=10, segments=8, seed=seed)
+    return seq, TrainingData([seq.name], [seq.source], [acap.extract(seq.vertices, seq.faces)], seq.faces,
+                             seq.vertices[0])
+
+
+# -- splits and windows ------------------------------------------------------------------------
+
+
+def test_split_holds_out_one_contiguous_block():
+    s = split_frames(50, 0.2)
+    assert s.heldout == (40, 50) and s.train == ((0, 40),)
+    s = split_frames(50, 0.2, at="start")
+    assert s.heldout == (0, 10) and s.train == ((10, 50),)
+    s = split_frames(50, 0.2, at="0.5")
+    assert s.heldout == (25, 35) and s.train == ((0, 25), (35, 50))
+    assert set(s.train_frames()) == set(range(50)) - set(range(25, 35))
+    assert split_frames(50, 0.0).heldout == (50, 50)
+    with pytest.raises(MeshseqError, match="--holdout"):
+        split_frames(50, 1.5)
+    with pytest.raises(MeshseqError, match="--holdout-at"):
+        split_frames(50, 0.2, at="middle")
+
+
+def test_windows_stay_inside_training_segments_and_respect_stride():
+    splits = [split_frames(50, 0.2, at="0.5"), split_frames(30, 0.2)]
+    sampler = WindowSampler(splits, ["a", "b"], window=5, stride=2)
+    rows = sampler.rows(np.arange(len(sampler.starts)))
+    assert rows.shape == (len(sampler.starts), 5)
+    assert np.all(np.diff(rows, axis=1) == 2)
+    held = set(range(25, 35)) | {50 + f for f in range(24, 30)}
+    assert not held & set(rows.ravel().tolist())
+    # every valid window is there: segment (0,25): starts 0..16; (35,50): 35..41; b (0,24): 0..15
+    assert len(sampler.starts) == 17 + 7 + 16
+    assert rows[:, 0].min() == 0 and rows[-1, 0] == 50 + 15
+    rng = np.random.default_rng(0)
+    assert sampler.sample(rng, 8).shape == (8, 5)
+    with pytest.raises(MeshseqError, match="--window 30"):
+        WindowSampler(splits, ["a", "b"], window=30, stride=1)
+    assert window_starts([(0, 0, 3)], window=4).shape == (0, 2)
+
+
+def test_heldout_windows_come_from_the_heldout_block():
+    splits = [split_frames(50, 0.2)]
+    rows = heldout_rows(splits, window=32)
+    assert rows.shape[1] == 10 and rows.min() >= 40 and rows.max() <= 49
+    assert heldout_rows([split_frames(50, 0.0)], window=8).size == 0
+
+
+# -- losses ------------------------------------------------------------------------------------
+
+
+def test_window_losses_by_hand():
+    X = torch.zeros(1, 3, 2, 9)
+    X[0, :, 0, 0] = torch.tensor([0.0, 1.0, 2.0])
+    f = X.clone()
+    f[0, 2, 0, 0] = 3.0  # forward chain misses X_3 by 1
+    b = X.flip(1).clone()
+    b[0, 2, 1, 1] = 2.0  # backward chain misses X_1 by 2 (its 3rd frame)
+    out = {"forward": f, "backward": b, "mu": torch.zeros(2, 2, 4), "logvar": torch.zeros(2, 2, 4)}
+    t = window_losses(out, X)
+    assert t["rec"].item() == pytest.approx((0 + 1) / 2 + (0 + 4) / 2)
+    # L_bd pairs S^f_i with S^b_{n+1-i}: frame 3 differs by 1, frame 1 by 2 (squared 4)
+    assert t["bd"].item() == pytest.approx((4 + 0 + 1) / 3)
+    assert t["kl"].item() == pytest.approx(0.0)
+    out["mu"] = torch.ones(2, 2, 4)
+    assert window_losses(out, X)["kl"].item() == pytest.approx(0.5 * 4)
+    out["backward"] = None
+    t = window_losses(out, X)
+    assert t["rec"].item() == pytest.approx(0.5) and t["bd"].item() == 0.0
+
+
+# -- the loop ----------------------------------------------------------------------------------
+
+
+def read_metrics(run):
+    with open(run / "metrics.csv", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def training_rec(model, data, run) -> float:
+    """Deterministic L_rec (z = mu) over every training window of ``data``'s first data set."""
+    scaling = meshseq.load(run).scaling
+    x = torch.from_numpy(scaling.apply(data.features[0]).astype(np.float32))
+    sampler = WindowSampler([split_frames(len(x), 0.2)], ["limb"], 8)
+    w = x[torch.from_numpy(sampler.rows(np.arange(len(sampler.starts))))]
+    with torch.no_grad():
+        return window_losses(model(w, sample=False), w)["rec"].item()
+
+
+def test_loss_decreases_on_a_generated_sequence(tmp_path):
+    _, data = limb_data()
+    cfg = TrainConfig(iterations=1, window=8, batch=4, eval_every=50, checkpoint_every=0, log_every=1, lr=2e-3)
+    first = train(data, tmp_path / "one", cfg, SMALL, device="cpu", progress=False, log=None)
+    before = training_rec(first["model"], data, tmp_path / "one")
+    cfg.iterations = 200
+    result = train(data, tmp_path / "run", cfg, SMALL, device="cpu", progress=False, log=None)
+    after = training_rec(result["model"], data, tmp_path / "run")
+    assert after < 0.7 * before
+    rows = read_metrics(tmp_path / "run")
+    assert [int(r["iteration"]) for r in rows] == list(range(1, 201))
+    held = [float(r["heldout_rec"]) for r in rows if r["heldout_rec"]]
+    assert len(held) == 4 and np.all(np.isfinite(held))  # at 50, 100, 150, 200
+    assert result["iteration"] == 200 and (tmp_path / "run" / "checkpoints" / "00000200").is_dir()
+
+
+@pytest.mark.parametrize("variant", ["std-bd", "uni"])
+def test_other_variants_train(tmp_path, variant):
+    _, data = limb_data(frames=24)
+    cfg = TrainConfig(iterations=3, window=6, batch=2, eval_every=0, checkpoint_every=0, log_every=1, w_kl=0.0)
+    train(data, tmp_path / "run", cfg, dict(SMALL, variant=variant), device="cpu", progress=False, log=None)
+    rows = read_metrics(tmp_path / "run")
+    assert len(rows) == 3
+    assert all(float(r["kl"]) >= 0 for r in rows)
+    if variant == "uni":
+        assert all(float(r["bd"]) == 0.0 for r in rows) and rows[-1]["heldout_bd"] == ""
+
+
+def test_several_data_sets_with_one_connectivity(tmp_path):
+    a = twisting_limb(frames=20, rings=8, segments=6, seed=0)
+    b = twisting_limb(frames=16, rings=8, segments=6, seed=1, twist_turns=0.5)
+    c = twisting_limb(frames=16, rings=9, segments=6)
+    for name, s in (("a", a), ("b", b), ("c", c)):
+        save_sequence(s, tmp_path / f"{name}.npz")
+    data = load_training_data([str(tmp_path / "a.npz"), str(tmp_path / "b.npz")])
+    assert [len(f) for f in data.features] == [20, 16]
+    np.testing.assert_allclose(data.reference, a.vertices[0])
+    # the second data set's features refer to the first data set's first frame
+    np.testing.assert_allclose(data.features[1], acap.extract(b.vertices, b.faces, reference=a.vertices[0]))
+    with pytest.raises(MeshseqError, match="c.npz: connectivity differs"):
+        load_training_data([str(tmp_path / "a.npz"), str(tmp_path / "c.npz")])
+    cfg = TrainConfig(iterations=2, window=6, batch=2, eval_every=1, checkpoint_every=0)
+    train(data, tmp_path / "run", cfg, SMALL, device="cpu", progress=False, log=None)
+    m = meshseq.load(tmp_path / "run")
+    assert [d["n_frames"] for d in m.meta["datasets"]] == [20, 16]
+    assert m.meta["datasets"][1]["split"]["heldout"] == [13, 16]
+
+
+def test_cli_train_then_load_and_use_the_model(tmp_path, capsys):
+    seq, _ = limb_data(frames=30)
+    save_sequence(seq, tmp_path / "limb.npz")
+    run = tmp_path / "run"
+    argv = ["train", str(tmp_path / "limb.npz"), "--out", str(run), "--iterations", "4", "--window", "6",
+            "--batch", "2", "--latent", "16", "--lstm-layers", "1", "--checkpoint-every", "2", "--no-progress",
+            "--device", "auto", "--variant", "bd", "--stride", "2", "--seed", "3"]
+    assert main(argv) == 0
+    assert "trained to iteration 4" in capsys.readouterr().out
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["00000002", "00000004"]
+    # nothing overwritten without --resume/--force
+    assert main(argv) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert main(argv + ["--force"]) == 0
+
+    m = meshseq.load(run)
+    assert m.iteration == 4 and m.config.latent == 16 and m.meta["train"]["stride"] == 2
+    x = m.features(seq.vertices[:5])
+    assert x.shape == (5, seq.n_vertices, 9) and x.dtype == np.float32
+    assert np.abs(x).max() <= 0.95 + 1e-5  # scaled like the training frames (first 24 of 30 contain these)
+    mu = m.encode(x)
+    assert mu.shape == (5, 16) and isinstance(mu, np.ndarray)
+    assert m.decode(mu).shape == (5, seq.n_vertices, 9)
+    s = m.initial_state(2)
+    s2, x1 = m.step(s, x[:2])
+    assert x1.shape == (2, seq.n_vertices, 9) and s2[0].shape == (1, 2, 16)
+    h = m.net.lstm(torch.from_numpy(mu[:2])[None], s)[0][0].detach()
+    np.testing.assert_allclose(x1, x[:2] + m.decode(h.numpy()), atol=1e-5)
+    frames = m.rollout(torch.from_numpy(x[:1]), 3, direction="backward")
+    assert isinstance(frames, torch.Tensor) and frames.shape == (1, 4, seq.n_vertices, 9)
+    v = m.vertices(x)
+    assert v.shape == (5, seq.n_vertices, 3)
+    # the reference mesh travels with the model: the first frame comes back (up to translation)
+    ref = seq.vertices[0] - seq.vertices[0].mean(0)
+    assert np.abs(v[0] - v[0].mean(0) - ref).max() < 1e-4 * np.ptp(ref)
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    assert main(["train", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("meshseq: error:") and "missing.npz" in err and err.count("\n") == 1
+    seq, _ = limb_data(frames=10)
+    save_sequence(seq, tmp_path / "limb.npz")
+    assert main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--window", "32"]) == 2
+    assert "--window 32" in capsys.readouterr().err
+    assert main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--batch", "0"]) == 2
+    assert "--batch 0" in capsys.readouterr().err
