@@ -264,7 +264,7 @@ def _rotation_to(direction: np.ndarray) -> np.ndarray:
     return pose
 
 
-def _render_pyrender(vertices, faces, normals, colors, camera: Camera) -> np.ndarray:
+def _render_pyrender(vertices, faces, colors, camera: Camera) -> np.ndarray:
     import pyrender
 
     scene = pyrender.Scene(bg_color=np.array(BACKGROUND + (255,)) / 255.0, ambient_light=(0.12,) * 3)
@@ -284,7 +284,7 @@ def _render_pyrender(vertices, faces, normals, colors, camera: Camera) -> np.nda
         for t in range(vertices.shape[0]):
             prim = pyrender.Primitive(
                 positions=vertices[t].astype(np.float32),
-                normals=normals[t].astype(np.float32),
+                normals=vertex_normals(vertices[t], faces).astype(np.float32),
                 color_0=np.concatenate([colors[t], np.ones((colors.shape[1], 1))], axis=1).astype(np.float32),
                 indices=faces32,
                 material=material,
@@ -298,7 +298,7 @@ def _render_pyrender(vertices, faces, normals, colors, camera: Camera) -> np.nda
     return out
 
 
-def _render_matplotlib(vertices, faces, normals, colors, camera: Camera) -> np.ndarray:
+def _render_matplotlib(vertices, faces, colors, camera: Camera) -> np.ndarray:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import PolyCollection
     from matplotlib.figure import Figure
@@ -358,10 +358,9 @@ def render_frames(
         colors = np.broadcast_to(np.asarray(MESH_COLOR), v.shape)
     else:
         colors = np.broadcast_to(np.asarray(vertex_colors, dtype=np.float64), v.shape)
-    normals = vertex_normals(v, f)
     if _pick_backend(backend) == "pyrender":
-        return _render_pyrender(v, f, normals, colors, camera)
-    return _render_matplotlib(v, f, normals, colors, camera)
+        return _render_pyrender(v, f, colors, camera)
+    return _render_matplotlib(v, f, colors, camera)
 
 
 # ----------------------------------------------------------------------------------------------
