@@ -77,7 +77,7 @@ class Camera:
         return np.stack([x, y], axis=-1), depth
 
 
-def _up_vector(up: str) -> np.ndarray:
+def up_vector(up: str) -> np.ndarray:
     """Unit vector of an axis name: ``"x"``, ``"y"``, ``"z"``, optionally with a ``-`` sign."""
     sign = -1.0 if up.startswith("-") else 1.0
     axis = up.lstrip("+-").lower()
@@ -116,7 +116,7 @@ def frame_camera(
         pts = np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in points])
     if pts.shape[0] == 0 or not np.all(np.isfinite(pts)):
         raise MeshseqError("cannot frame a camera: the vertices are empty or not finite")
-    upv = _up_vector(up)
+    upv = up_vector(up)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     centre = 0.5 * (lo + hi)
     # Horizontal principal axes (the plane orthogonal to up).

@@ -23,7 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from meshseq.errors import MeshseqError
-from meshseq.render import check_same_connectivity, frame_camera
+from meshseq.render import check_same_connectivity, frame_camera, up_vector
 
 #: Colours of the sequences, in order (RGB 0-255).
 PALETTE = ((150, 165, 185), (214, 140, 100), (120, 175, 130), (175, 135, 190), (200, 180, 100))
@@ -98,6 +98,7 @@ class Viewer:
         check_same_connectivity(items)
         if not fps > 0:
             raise MeshseqError(f"--fps {fps}: must be positive")
+        upv = up_vector(up)  # validates --up before anything starts
         check_port_free(host, port)
 
         import viser
@@ -127,8 +128,6 @@ class Viewer:
         server.initial_camera.look_at = tuple(float(x) for x in framed.target)
         server.initial_camera.fov = float(framed.yfov)
 
-        upv = np.zeros(3)
-        upv["xyz".index(up.lstrip("+-").lower())] = -1.0 if up.startswith("-") else 1.0
         self._meshes = []
         for i, (it, verts) in enumerate(zip(items, self._placed)):
             handle = server.scene.add_mesh_simple(

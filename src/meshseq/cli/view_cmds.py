@@ -123,7 +123,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise MeshseqError(f"--every {args.every}: must be at least 1")
     if args.height is not None and not 16 <= args.height <= 2048:
         raise MeshseqError(f"--height {args.height}: must be between 16 and 2048 pixels")
-    render._up_vector(args.up)  # validate before loading
+    render.up_vector(args.up)  # validate before loading
     window = _frame_slice(args.frames)
     seqs = [_load(s) for s in args.seqs]
     labels = [s.name for s in seqs]
@@ -204,7 +204,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_view(args: argparse.Namespace) -> int:
     from meshseq.viewer import Viewer, check_port_free
 
-    check_port_free("127.0.0.1", args.port)  # before the (slow) loading
+    from meshseq.render import up_vector
+
+    up_vector(args.up)  # bad options fail before the (slow) loading
+    check_port_free("127.0.0.1", args.port)
     seqs = [_load(s) for s in args.seqs]
     viewer = Viewer(seqs, port=args.port, fps=_fps(args, seqs[0]), up=args.up, playing=not args.paused)
     try:
