@@ -99,8 +99,9 @@ def save_checkpoint(
     """
     root = checkpoint_root(run_dir)
     root.mkdir(parents=True, exist_ok=True)
-    for stale in root.glob(".tmp-*"):  # left by a killed run
-        shutil.rmtree(stale, ignore_errors=True)
+    for pattern in (".tmp-*", ".old-*"):  # left by a killed run
+        for stale in root.glob(pattern):
+            shutil.rmtree(stale, ignore_errors=True)
     final = root / f"{int(iteration):08d}"
     with atomic_output(final, force=True) as tmp:
         tmp.mkdir()

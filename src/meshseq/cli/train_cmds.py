@@ -29,6 +29,8 @@ def register(sub) -> None:
     p.add_argument("--stride", type=int, default=1, help="take every STRIDE-th frame (2: every other frame)")
     p.add_argument("--seed", type=int, default=0, help="random seed (weights, windows, sampling noise)")
     p.add_argument("--device", default="auto", help="auto (cuda if available), cpu, cuda or cuda:N")
+    p.add_argument("--threads", type=int, default=None,
+                   help="CPU threads for torch (default: torch's choice; 1 is best for tiny models)")
     p.add_argument("--resume", action="store_true", help="continue RUN from its newest checkpoint "
                    "(its stored options are used; --iterations may extend the run)")
     p.add_argument("--force", action="store_true", help="start over in a non-empty RUN (deletes its checkpoints)")
@@ -79,6 +81,12 @@ def _train(args) -> int:
         scaling=args.scaling, consistency=args.consistency, eval_every=args.eval_every,
         checkpoint_every=args.checkpoint_every, log_every=args.log_every, keep=args.keep,
     )
+    if args.threads is not None:
+        if args.threads < 1:
+            raise MeshseqError(f"--threads {args.threads}: expected a positive integer")
+        import torch
+
+        torch.set_num_threads(args.threads)
     model_options = {"variant": args.variant, "latent": args.latent, "lstm_layers": args.lstm_layers,
                      "conv_layers": args.conv_layers, "conv_impl": args.conv}
     data = load_training_data(args.data, consistency=args.consistency)
