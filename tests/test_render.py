@@ -382,3 +382,15 @@ def test_cli_render_frames_window_labels_true_frame_numbers(tmp_path, capsys, ho
     assert main(["render", horse_path, "-o", str(tmp_path / "x.png"), "--frames", "60:"]) == 2
     assert "no frames" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+
+
+def test_up_axis_option_matches_a_rotated_copy(horse):
+    verts, faces = horse
+    v = verts[:1]
+    z_up = np.stack([v[..., 0], -v[..., 2], v[..., 1]], axis=-1)  # y-up data turned z-up
+    a = render.film_strip([v], faces, every=1, tile_height=60)
+    b = render.film_strip([z_up], faces, every=1, tile_height=60, up="z")
+    assert a.shape == b.shape
+    assert np.abs(a.astype(int) - b.astype(int)).mean() < 1.0
+    c = render.film_strip([z_up], faces, every=1, tile_height=60)  # wrong up: a different picture
+    assert c.shape != a.shape or np.abs(a.astype(int) - c.astype(int)).mean() > 3.0
