@@ -477,10 +477,11 @@ def train(
             optimizer.step()
 
             row = None
+            if config.log_every and it % config.log_every == 0 or it == config.iterations:
+                last["loss"] = float(total.detach())  # this process's share of the batch
             if is_main and (config.log_every and it % config.log_every == 0 or it == config.iterations):
                 row = {"iteration": it, "seconds": round(time.perf_counter() - t0, 3), "loss": float(total.detach())}
                 row.update({k: float(v) for k, v in terms.items()})
-                last["loss"] = row["loss"]
             if is_main and (config.eval_every and it % config.eval_every == 0 or it == config.iterations):
                 row = row or {"iteration": it, "seconds": round(time.perf_counter() - t0, 3)}
                 row.update(evaluate())
