@@ -23,6 +23,7 @@ demo: $(STAMP)
 	$(BIN)/meshseq demo
 
 test: $(STAMP)
+	tools/install_test_deps.sh
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
