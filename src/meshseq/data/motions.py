@@ -1,0 +1,332 @@
+"""Human motions as smooth periodic joint-rotation curves on Anny's skeleton (numpy only).
+
+A motion is a function of time giving, for each driven bone of the Anny rig, a rotation
+``(T, 3, 3)`` per frame: the bone's *delta* in Anny's ``local-ref`` pose parameterization, that
+is a rotation about the bone's head in world-aligned axes carried by its parent (identity = the
+rest A-pose). Anny's axes: ``+x`` is the body's left, ``-y`` its front, ``+z`` up.
+
+Every curve is built from sines of the motion phase ``phi = 2 pi speed f0 t + phase`` (and
+powers of clipped sines that are at least C1), so joint angles, and so vertex positions, move
+smoothly and repeat with the motion's cycle. :class:`MotionParams` scales the speed, the
+amplitude of every excursion from the motion's base posture, and shifts the phase, so no two
+generated sequences are the same.
+
+Motions are authored for the body's left side in degrees with anatomical helpers (see
+``_Side``); the right side is the mirror image (``M R M`` with ``M = diag(-1, 1, 1)``), usually
+half a cycle later. Besides rotations a motion gives a vertical ``hop`` (metres above the
+floor contact, for jumping jacks) and whether it travels (``walk``: the body moves forward so
+the stance foot stays put); the grounding itself is done by :mod:`meshseq.data.bodies`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Built-in motions, in the order ``make-bodies`` lists them.
+MOTIONS = ("walk", "jumping_jacks", "punch", "shake_arms", "squat", "wave", "bend")
+#: Other accepted spellings.
+ALIASES = {
+    "walking": "walk", "jumping-jacks": "jumping_jacks", "jumpingjacks": "jumping_jacks",
+    "jacks": "jumping_jacks", "punching": "punch", "shake-arms": "shake_arms",
+    "shaking_arms": "shake_arms", "squats": "squat", "waving": "wave", "bending": "bend",
+}
+#: Base cycle frequency of each motion (cycles per second at speed 1).
+BASE_FREQUENCY = {
+    "walk": 0.9, "jumping_jacks": 0.8, "punch": 0.75, "shake_arms": 0.5,
+    "squat": 0.4, "wave": 0.5, "bend": 0.3,
+}
+
+
+@dataclass(frozen=True)
+class MotionParams:
+    """Variation of one performance: ``speed`` (cycle-rate factor), ``amplitude`` (factor on every
+    excursion from the base posture) and ``phase`` (radians into the cycle at frame 0)."""
+
+    speed: float = 1.0
+    amplitude: float = 1.0
+    phase: float = 0.0
+
+    @staticmethod
+    def sample(rng: np.random.Generator) -> "MotionParams":
+        """Random variation: speed in [0.85, 1.15], amplitude in [0.8, 1.05], any phase."""
+        return MotionParams(
+            speed=float(rng.uniform(0.85, 1.15)),
+            amplitude=float(rng.uniform(0.8, 1.05)),
+            phase=float(rng.uniform(0.0, 2.0 * np.pi)),
+        )
+
+
+@dataclass
+class Motion:
+    """Joint-rotation curves of one performance over ``T`` frames.
+
+    Attributes:
+        rotations: bone label -> ``(T, 3, 3)`` delta rotation (``local-ref`` parameterization).
+        hop: ``(T,)`` height in metres added above the floor contact.
+        travels: the body moves so that the stance foot stays fixed (walk) instead of keeping
+            both feet where they are.
+    """
+
+    rotations: dict[str, np.ndarray]
+    hop: np.ndarray
+    travels: bool = False
+    name: str = ""
+    params: MotionParams = field(default_factory=MotionParams)
+
+
+def canonical_motion(name: str) -> str | None:
+    """The built-in motion called ``name`` (case and aliases tolerated), or None."""
+    key = name.strip().lower().replace(" ", "_")
+    key = ALIASES.get(key, key)
+    return key if key in MOTIONS else None
+
+
+# ----------------------------------------------------------------------------------------------
+# Rotation helpers (vectorised over frames)
+
+
+def _axis_rotation(axis: np.ndarray, degrees: np.ndarray) -> np.ndarray:
+    """Rotations ``(T, 3, 3)`` by ``degrees (T,)`` about the unit ``axis (3,)`` (Rodrigues)."""
+    a = np.radians(np.asarray(degrees, dtype=np.float64))
+    k = np.asarray(axis, dtype=np.float64)
+    k = k / np.linalg.norm(k)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    s, c = np.sin(a)[:, None, None], np.cos(a)[:, None, None]
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+
+
+_X, _Y, _Z = np.eye(3)
+_MIRROR = np.diag([-1.0, 1.0, 1.0])
+
+
+def mirror(rotations: np.ndarray) -> np.ndarray:
+    """The left/right mirror image ``M R M`` of rotations ``(..., 3, 3)`` (M flips x)."""
+    return _MIRROR @ rotations @ _MIRROR
+
+
+def _bump(x: np.ndarray, power: float = 3.0) -> np.ndarray:
+    """``max(0, sin x) ** power``: a smooth (C1 for power >= 2) pulse in each first half-cycle."""
+    return np.maximum(np.sin(x), 0.0) ** power
+
+
+def _ease(x: np.ndarray) -> np.ndarray:
+    """``(1 - cos x) / 2``: 0 at x = 0, 1 at x = pi, smooth and periodic."""
+    return 0.5 * (1.0 - np.cos(x))
+
+
+class _Side:
+    """Collects the rotations of one body side (authored as the left) and the central bones.
+
+    Angles are degrees ``(T,)``; each helper composes onto the bone's rotation in the order
+    called (a later call is applied after, in world-aligned axes). Sign conventions, left side:
+
+    * ``hip(flex, abduct)``: flex > 0 swings the thigh forward, abduct > 0 outwards.
+    * ``knee(flex)``: flex > 0 bends the shin backwards.
+    * ``ankle(pitch, roll)``: pitch > 0 lifts the toes (dorsiflexion), roll > 0 tilts the sole
+      outwards; ``flat_foot`` chooses them so the sole stays parallel to the floor.
+    * ``shoulder(abduct, flex, adduct_h)``: abduct > 0 raises the arm sideways from the A-pose
+      (about -35 hangs it at the side), flex > 0 raises it forward, adduct_h > 0 brings it
+      across the front of the body.
+    * ``elbow(flex)``: flex > 0 bends the forearm forward (hinge axis from the rest skeleton).
+    * ``elbow_up(angle)``: rotates the forearm in the coronal plane, > 0 upwards/outwards.
+    * ``wrist(flex)``.
+    """
+
+    def __init__(self, n: int, elbow_axis: np.ndarray):
+        self.n = n
+        self.rot: dict[str, np.ndarray] = {}
+        self.elbow_axis = elbow_axis
+        self._leg_pitch = np.zeros(n)
+        self._leg_roll = np.zeros(n)
+
+    def _apply(self, bone: str, R: np.ndarray) -> None:
+        prev = self.rot.get(bone)
+        self.rot[bone] = R if prev is None else R @ prev
+
+    def _angles(self, value) -> np.ndarray:
+        return np.broadcast_to(np.asarray(value, dtype=np.float64), (self.n,))
+
+    def hip(self, flex=0.0, abduct=0.0) -> None:
+        flex, abduct = self._angles(flex), self._angles(abduct)
+        self._apply("upperleg01.L", _axis_rotation(_Y, -abduct))
+        self._apply("upperleg01.L", _axis_rotation(_X, -flex))
+        self._leg_pitch = self._leg_pitch - flex
+        self._leg_roll = self._leg_roll - abduct
+
+    def knee(self, flex=0.0) -> None:
+        flex = self._angles(flex)
+        self._apply("lowerleg01.L", _axis_rotation(_X, flex))
+        self._leg_pitch = self._leg_pitch + flex
+
+    def flat_foot(self, extra_pitch=0.0, body_pitch=0.0) -> None:
+        """Ankle angles that undo the leg's pitch and roll so the sole is level (plus ``extra_pitch``)."""
+        pitch = -(self._leg_pitch + self._angles(body_pitch)) + self._angles(extra_pitch)
+        self._apply("foot.L", _axis_rotation(_Y, -self._leg_roll))
+        self._apply("foot.L", _axis_rotation(_X, pitch))
+
+    def shoulder(self, abduct=0.0, flex=0.0, adduct_h=0.0) -> None:
+        abduct, flex, adduct_h = self._angles(abduct), self._angles(flex), self._angles(adduct_h)
+        self._apply("upperarm01.L", _axis_rotation(_Y, -abduct))
+        self._apply("upperarm01.L", _axis_rotation(_X, -flex))
+        self._apply("upperarm01.L", _axis_rotation(_Z, -adduct_h))
+
+    def elbow(self, flex=0.0) -> None:
+        self._apply("lowerarm01.L", _axis_rotation(self.elbow_axis, self._angles(flex)))
+
+    def elbow_up(self, angle=0.0) -> None:
+        self._apply("lowerarm01.L", _axis_rotation(_Y, -self._angles(angle)))
+
+    def wrist(self, flex=0.0) -> None:
+        self._apply("wrist.L", _axis_rotation(_X, -self._angles(flex)))
+
+    def mirrored(self) -> dict[str, np.ndarray]:
+        """These rotations as the right side's (bone labels ``.L`` -> ``.R``, mirrored)."""
+        return {k[:-2] + ".R": mirror(v) for k, v in self.rot.items()}
+
+
+def _spine(n: int, pitch=0.0, yaw=0.0, roll=0.0, bones=("spine04", "spine03", "spine02", "spine01")):
+    """Central rotations spreading a torso ``pitch`` (> 0 leans forward), ``yaw`` (> 0 turns to
+    the left) and ``roll`` (> 0 leans to the left) in degrees evenly over ``bones``."""
+    k = len(bones)
+    pitch, yaw, roll = (np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)) / k for v in (pitch, yaw, roll))
+    R = _axis_rotation(_Z, yaw) @ _axis_rotation(_Y, -roll) @ _axis_rotation(_X, pitch)
+    return {b: R for b in bones}
+
+
+# ----------------------------------------------------------------------------------------------
+# The motions
+
+
+def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionParams | None = None,
+                  elbow_axis: np.ndarray | None = None) -> Motion:
+    """Joint rotations of motion ``name`` over ``n_frames`` frames at ``fps``.
+
+    Args:
+        elbow_axis: the left elbow's hinge axis ``(3,)`` in rest (world) coordinates; default
+            the one of Anny's default body (perpendicular to the upper arm and the front).
+    """
+    key = canonical_motion(name)
+    if key is None:
+        raise ValueError(f"unknown motion {name!r} (known: {', '.join(MOTIONS)})")
+    p = params or MotionParams()
+    t = np.arange(n_frames, dtype=np.float64) / float(fps)
+    phi = 2.0 * np.pi * BASE_FREQUENCY[key] * p.speed * t + p.phase
+    axis = DEFAULT_ELBOW_AXIS if elbow_axis is None else np.asarray(elbow_axis, dtype=np.float64)
+    left, right = _Side(n_frames, axis), _Side(n_frames, axis)
+    central: dict[str, np.ndarray] = {}
+    hop = np.zeros(n_frames)
+    A = p.amplitude
+    travels = False
+
+    if key == "walk":
+        travels = True
+        for side, ph in ((left, phi), (right, phi + np.pi)):
+            # Hip flexes forward through the swing (sin rising), knee bends early in the swing
+            # and a little after heel strike, the foot stays nearly level.
+            hip = A * 24.0 * np.sin(ph)
+            knee = A * (55.0 * (0.5 + 0.5 * np.cos(ph + 0.35)) ** 2
+                        + 10.0 * (0.5 + 0.5 * np.cos(ph - np.pi / 2 - 0.5)) ** 6)
+            side.hip(flex=hip, abduct=2.0)
+            side.knee(flex=5.0 + knee)
+            side.flat_foot(extra_pitch=A * 8.0 * np.sin(ph + 0.6))
+            # The arm swings against the leg of the same side.
+            side.shoulder(abduct=-33.0, flex=A * 18.0 * np.sin(ph + np.pi))
+            side.elbow(flex=18.0 + A * 12.0 * (0.5 + 0.5 * np.sin(ph + np.pi)))
+        central.update(_spine(n_frames, pitch=3.0, yaw=A * 6.0 * np.sin(phi + np.pi)))
+        central["spine05"] = _axis_rotation(_Z, A * 4.0 * np.sin(phi))
+
+    elif key == "jumping_jacks":
+        # Closed (arms down, feet together) at phi = 0, open (arms overhead, feet apart) at pi;
+        # in the air between (hop peaks half-way), knees soften at each landing.
+        s = _ease(phi)
+        land = np.cos(phi) ** 2
+        for side in (left, right):
+            side.hip(flex=A * 6.0 * land, abduct=A * 16.0 * s)
+            side.knee(flex=A * 14.0 * land)
+            side.flat_foot()
+            side.shoulder(abduct=-34.0 + A * 160.0 * s)
+            side.elbow(flex=12.0 + 8.0 * s)
+        central.update(_spine(n_frames, pitch=A * 5.0 * land))
+        hop = A * 0.07 * np.sin(phi) ** 2
+
+    elif key == "punch":
+        # Boxing guard, alternate straight punches (left then right), torso turning into each.
+        pl, pr = _bump(phi, 3.0), _bump(phi + np.pi, 3.0)
+        for side, e in ((left, pl), (right, pr)):
+            e = A * e
+            side.hip(flex=10.0)
+            side.knee(flex=18.0)
+            side.flat_foot()
+            side.shoulder(abduct=-40.0 + 8.0 * e, flex=55.0 + 30.0 * e, adduct_h=12.0 * e)
+            side.elbow(flex=125.0 - 115.0 * e)
+            side.wrist(flex=-10.0)
+        central.update(_spine(n_frames, pitch=8.0, yaw=A * 22.0 * (pr - pl)))
+
+    elif key == "shake_arms":
+        # Arms held loosely in front and shaken: fast shoulder / elbow / wrist oscillations
+        # (several harmonics of the cycle, so the motion stays periodic), a slow body sway.
+        for side, off in ((left, 0.0), (right, 1.3)):
+            f1, f2 = 6.0 * phi + off, 9.0 * phi + 2.0 * off
+            side.hip(flex=4.0)
+            side.knee(flex=8.0)
+            side.flat_foot()
+            side.shoulder(abduct=-20.0 + A * 9.0 * np.sin(f1), flex=35.0 + A * 10.0 * np.sin(f1 + 0.9),
+                          adduct_h=A * 6.0 * np.sin(f2))
+            side.elbow(flex=35.0 + A * 22.0 * np.sin(f1 - 0.7) + A * 6.0 * np.sin(f2 + 0.3))
+            side.wrist(flex=A * 30.0 * np.sin(f1 - 1.4))
+        central.update(_spine(n_frames, pitch=6.0, yaw=A * 4.0 * np.sin(phi), roll=A * 3.0 * np.sin(2 * phi)))
+
+    elif key == "squat":
+        # The pelvis tips forward, thighs reach about horizontal, knees go forward over the
+        # feet (flat on the floor), the back leans and the arms reach forward for balance.
+        s = A * _ease(phi)
+        pelvis = 20.0 * s
+        central["root"] = _axis_rotation(_X, pelvis)
+        for side in (left, right):
+            side.hip(flex=pelvis + 85.0 * s, abduct=6.0 + 6.0 * s)
+            side.knee(flex=110.0 * s)
+            side.flat_foot(body_pitch=pelvis)
+            side.shoulder(abduct=-33.0 + 18.0 * s, flex=85.0 * s)
+            side.elbow(flex=10.0)
+        central.update(_spine(n_frames, pitch=25.0 * s))
+
+    elif key == "wave":
+        # Right hand raised and waving from the elbow; the left arm hangs; a slight sway.
+        w = np.sin(4.0 * phi)
+        raise_ = 0.8 + 0.2 * np.sin(phi)  # the arm sinks and rises a little once a cycle
+        left.hip(flex=2.0)
+        left.flat_foot()
+        left.shoulder(abduct=-33.0)
+        left.elbow(flex=12.0)
+        right.hip(flex=2.0)
+        right.flat_foot()
+        right.shoulder(abduct=-33.0 + (33.0 + A * 48.0) * raise_, flex=18.0 * raise_)
+        right.elbow_up(angle=raise_ * (70.0 + A * 22.0 * w))
+        right.wrist(flex=A * 15.0 * w * raise_)
+        central.update(_spine(n_frames, yaw=-6.0 * raise_, roll=A * 2.0 * w * raise_))
+
+    elif key == "bend":
+        # Forward bend from the hips (the whole body pitches about the root, the legs are
+        # turned back upright) and the back rounds; the arms hang towards the shins.
+        s = A * _ease(phi)
+        body = 45.0 * s
+        central["root"] = _axis_rotation(_X, body)
+        for side in (left, right):
+            side.hip(flex=body)
+            side.knee(flex=8.0 * s)
+            side.flat_foot(body_pitch=body)
+            side.shoulder(abduct=-30.0 + 8.0 * s, flex=35.0 * s)
+            side.elbow(flex=10.0)
+        central.update(_spine(n_frames, pitch=40.0 * s))
+        central["neck01"] = _axis_rotation(_X, -15.0 * s)
+
+    rotations = dict(central)
+    rotations.update(left.rot)
+    rotations.update(right.mirrored())
+    return Motion(rotations=rotations, hop=hop, travels=travels, name=key, params=p)
+
+
+#: Elbow hinge of Anny's default body: perpendicular to the rest upper arm and the front (-y).
+DEFAULT_ELBOW_AXIS = np.cross(np.array([0.66, 0.0, -0.75]), np.array([0.0, -1.0, 0.0]))
