@@ -1,0 +1,178 @@
+"""The comparisons of the paper's tables: simple extrapolations, interpolation and a mesh VAE.
+
+Prediction baselines take given frames ``(B, U, V, 9)`` and return ``(B, n, V, 9)`` (scaled or
+raw features: every map here is affine-equivariant, so both give the same result):
+
+- ``zero_velocity``: repeat the last given frame (hard to beat at short range);
+- ``linear_acap``: extrapolate the ACAP features linearly from the last two given frames
+  (Gao et al. 2017; with one given frame it equals zero velocity);
+- ``vae_latent``: extrapolate linearly in the latent space of a mesh VAE trained on the same
+  features. It stands in for Tan et al. (CVPR 2018), which used another feature: outputs say so.
+
+Completion baseline: ``linear_interpolation`` of ACAP features between two keys (CMA-ES is in
+``meshseq.synthesize.complete_cma``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from meshseq.mesh import Topology
+from meshseq.model import MeshConv, NeighborMean
+
+PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
+COMPLETION_METHODS = ("ours", "cma", "linear")
+VAE_NOTE = "vae_latent: latent extrapolation of a mesh VAE on ACAP features, standing in for Tan et al. 2018"
+
+
+def zero_velocity(given: np.ndarray, n_frames: int) -> np.ndarray:
+    """``(B, U, V, C)`` -> ``(B, n, V, C)``: the last given frame, repeated."""
+    g = np.asarray(given)
+    return np.repeat(g[:, -1:], n_frames, axis=1)
+
+
+def linear_acap(given: np.ndarray, n_frames: int) -> np.ndarray:
+    """``(B, U, V, C)`` -> ``(B, n, V, C)``: ``X_last + k (X_last - X_prev)``, k = 1..n."""
+    g = np.asarray(given)
+    if g.shape[1] < 2:
+        return zero_velocity(g, n_frames)
+    velocity = g[:, -1] - g[:, -2]
+    k = np.arange(1, n_frames + 1, dtype=g.dtype)[None, :, None, None]
+    return g[:, -1:] + k * velocity[:, None]
+
+
+def linear_interpolation(key_a: np.ndarray, key_b: np.ndarray, n_between: int) -> np.ndarray:
+    """``(V, C)``, ``(V, C)`` -> ``(n_between + 2, V, C)`` from key a to key b, keys included."""
+    s = np.linspace(0.0, 1.0, n_between + 2)[:, None, None]
+    return (1 - s) * np.asarray(key_a)[None] + s * np.asarray(key_b)[None]
+
+
+# --------------------------------------------------------------------------------------------
+# mesh VAE
+
+
+@dataclass
+class VAEConfig:
+    n_vertices: int
+    channels: int = 9
+    conv_layers: int = 3
+    latent: int = 128
+    conv_impl: str = "sparse"
+
+
+class MeshVAE(nn.Module):
+    """A mesh-convolutional VAE on single frames ``(B, V, C)``: the generator's encoder with a tied
+    decoder that outputs the frame itself (not a change)."""
+
+    def __init__(self, config: VAEConfig, topology: Topology):
+        super().__init__()
+        self.config = config
+        C, L, V = config.channels, config.latent, config.n_vertices
+        ring = NeighborMean(topology, config.conv_impl)
+        self.convs = nn.ModuleList(MeshConv(C, C, ring) for _ in range(config.conv_layers))
+        self.fc = nn.Linear(V * C, L)
+        self.fc_mu = nn.Linear(L, L)
+        self.fc_logvar = nn.Linear(L, L)
+        self.dec_fc_bias = nn.Parameter(torch.zeros(V * C))
+        self.dec_conv_bias = nn.ParameterList(nn.Parameter(torch.zeros(C)) for _ in range(config.conv_layers))
+
+    def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(B, V, C)`` -> ``(mu, logvar)`` each ``(B, L)``."""
+        for conv in self.convs:
+            x = torch.tanh(conv(x))
+        e = self.fc(x.reshape(x.shape[0], -1))
+        return self.fc_mu(e), self.fc_logvar(e)
+
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        """``(B, L)`` -> frames ``(B, V, C)``."""
+        y = torch.nn.functional.linear(z, self.fc.weight.t(), self.dec_fc_bias).view(z.shape[0], self.config.n_vertices, -1)
+        K = len(self.convs)
+        for k in range(K):
+            y = self.convs[K - 1 - k](y, transpose=True, bias=self.dec_conv_bias[k])
+            if k < K - 1:
+                y = torch.tanh(y)
+        return y
+
+
+def train_vae(frames: np.ndarray, topology: Topology, latent: int = 128, iterations: int = 500,
+              batch: int = 16, lr: float = 1e-3, kl_weight: float = 1e-3, seed: int = 0,
+              device: str | torch.device = "cpu") -> MeshVAE:
+    """Fit a ``MeshVAE`` to scaled training frames ``(N, V, C)`` (reconstruction + KL)."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    x_all = torch.as_tensor(np.asarray(frames), dtype=torch.float32, device=device)
+    vae = MeshVAE(VAEConfig(n_vertices=x_all.shape[1], channels=x_all.shape[2], latent=latent), topology).to(device)
+    opt = torch.optim.Adam(vae.parameters(), lr=lr)
+    for _ in range(iterations):
+        x = x_all[torch.as_tensor(rng.integers(0, len(x_all), size=min(batch, len(x_all))), device=device)]
+        mu, logvar = vae.encode(x)
+        z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu)
+        rec = ((vae.decode(z) - x) ** 2).sum(dim=(1, 2)).mean()
+        kl = -0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(dim=1).mean()
+        loss = rec + kl_weight * kl
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return vae.eval()
+
+
+def vae_latent(vae: MeshVAE, given: np.ndarray, n_frames: int) -> np.ndarray:
+    """``(B, U, V, C)`` -> ``(B, n, V, C)``: linear extrapolation of the latent means, decoded."""
+    g = torch.as_tensor(np.asarray(given), dtype=torch.float32, device=next(vae.parameters()).device)
+    bsz, u = g.shape[:2]
+    with torch.no_grad():
+        mu, _ = vae.encode(g.reshape(bsz * u, *g.shape[2:]))
+        mu = mu.view(bsz, u, -1)
+        vel = mu[:, -1] - mu[:, -2] if u >= 2 else torch.zeros_like(mu[:, -1])
+        k = torch.arange(1, n_frames + 1, dtype=mu.dtype, device=mu.device)[None, :, None]
+        z = mu[:, -1:] + k * vel[:, None]
+        out = vae.decode(z.reshape(bsz * n_frames, -1)).view(bsz, n_frames, *g.shape[2:])
+    return out.cpu().numpy()
+
+
+def save_vae(vae: MeshVAE, folder: str | Path, info: dict) -> None:
+    """Weights (safetensors) and config + ``info`` (JSON) into ``folder``, atomically."""
+    from safetensors.torch import save_file
+
+    from meshseq.io import atomic_output
+
+    with atomic_output(Path(folder), force=True) as tmp:
+        tmp.mkdir()
+        save_file({k: v.detach().cpu().contiguous() for k, v in vae.state_dict().items()}, str(tmp / "vae.safetensors"))
+        (tmp / "vae.json").write_text(json.dumps({"config": asdict(vae.config), **info}, indent=2))
+
+
+def load_vae(folder: str | Path, topology: Topology, device="cpu") -> tuple[MeshVAE, dict]:
+    """Inverse of ``save_vae`` (safetensors and JSON only: nothing unpickled)."""
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    meta = json.loads((folder / "vae.json").read_text())
+    vae = MeshVAE(VAEConfig(**meta["config"]), topology)
+    vae.load_state_dict(load_file(str(folder / "vae.safetensors")))
+    return vae.to(device).eval(), meta
+
+
+def pairwise_diversity(samples: np.ndarray) -> float:
+    """Mean distance between every pair of samples ``(K, ...)`` (per-vertex Euclidean over the last
+    axis, averaged); 0 for a single sample."""
+    k = len(samples)
+    if k < 2:
+        return 0.0
+    total, count = 0.0, 0
+    for i in range(k):  # K is small (a handful of samples)
+        d = np.linalg.norm(samples[i + 1:] - samples[i][None], axis=-1)
+        total += float(d.mean(axis=tuple(range(1, d.ndim))).sum())
+        count += k - 1 - i
+    return total / count if count else 0.0
+
+
+def _unused() -> None:  # keep math imported for type checkers of older numpy
+    return math.pi and None

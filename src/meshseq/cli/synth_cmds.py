@@ -1,0 +1,365 @@
+"""meshseq commands of synthesis and evaluation: ``predict``, ``complete``, ``evaluate``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from meshseq.errors import MeshseqError
+
+
+def register(sub) -> None:
+    """Add ``predict``, ``complete`` and ``evaluate`` to the ``meshseq`` parser's subparsers."""
+    from meshseq.baselines import COMPLETION_METHODS, PREDICTION_METHODS
+
+    p = sub.add_parser("predict", help="continue a motion from given frames",
+                       description="Feed U given frames of DATA (from --start) to a trained model and "
+                       "generate N more. Writes the given frames followed by the generated ones; the "
+                       "first generated frame continues from the last given one.")
+    _run_data(p)
+    p.add_argument("--start", type=int, default=0, metavar="F", help="first given frame (default 0)")
+    p.add_argument("--given", type=int, default=1, metavar="U", help="how many frames to give (default 1)")
+    p.add_argument("--frames", type=int, default=60, metavar="N", help="frames to generate (default 60)")
+    p.add_argument("--method", choices=PREDICTION_METHODS, default="ours",
+                   help="ours (the trained model, default) or a baseline: zero_velocity, linear_acap, "
+                   "vae_latent (a mesh VAE trained on the run's training frames on first use)")
+    _output(p)
+    p.set_defaults(func=cmd_predict)
+
+    p = sub.add_parser("complete", help="fill in the frames between keyframes",
+                       description="Fill every gap between consecutive keyframes of DATA: the forward "
+                       "chain from the first key and the backward chain from the second, stitched "
+                       "where they meet. The output passes exactly through every keyframe.")
+    _run_data(p)
+    p.add_argument("--keyframes", required=True, metavar="A,B[,C...]",
+                   help="increasing frame numbers of DATA to keep as keys")
+    p.add_argument("--between", type=int, default=None, metavar="N",
+                   help="frames to generate between consecutive keys (default: as many as DATA has there)")
+    p.add_argument("--samples", type=int, default=1, metavar="K",
+                   help="K completions from random initial states (default 1: the trained states)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
+    p.add_argument("--method", choices=COMPLETION_METHODS, default="ours",
+                   help="ours (default), cma (CMA-ES over the forward chain's initial state) or linear "
+                   "(interpolation of ACAP features)")
+    p.add_argument("--cma-evals", type=int, default=400, help="CMA-ES: at most this many roll-outs per gap")
+    p.add_argument("--cma-seconds", type=float, default=60.0, help="CMA-ES: at most this many seconds per gap")
+    _output(p)
+    p.set_defaults(func=cmd_complete)
+
+    p = sub.add_parser("evaluate", help="the paper's tables on held-out frames",
+                       description="Prediction error at several horizons (data units x 1e-4, after "
+                       "removing translation and after rigid alignment) for the model and every "
+                       "baseline, the feature-change curve, and completion errors, on the held-out "
+                       "part of DATA recorded in RUN (or --range).")
+    _run_data(p)
+    p.add_argument("--given", default="1,3", metavar="U,...", help="numbers of given frames (default 1,3)")
+    p.add_argument("--horizons", default="5,10,15", metavar="H,...", help="horizons (default 5,10,15)")
+    p.add_argument("--range", default=None, metavar="A:B", help="evaluate on frames [A, B) instead of the held-out part")
+    p.add_argument("--methods", default=",".join(PREDICTION_METHODS), metavar="M,...",
+                   help=f"prediction methods (default all: {','.join(PREDICTION_METHODS)})")
+    p.add_argument("--gaps", default="5,10", metavar="G,...",
+                   help="completion gaps (frames between keys) to evaluate; 'none' to skip (default 5,10)")
+    p.add_argument("--samples", type=int, default=4, help="completions per gap for the diversity figure (default 4)")
+    p.add_argument("--curve-frames", type=int, default=60, help="length of the feature-change curves (default 60)")
+    p.add_argument("--vae-iterations", type=int, default=1000, help="training of the VAE baseline (first use)")
+    p.add_argument("--cma-evals", type=int, default=200, help="CMA-ES roll-outs per gap (default 200)")
+    p.add_argument("--cma-seconds", type=float, default=30.0, help="CMA-ES seconds per gap (default 30)")
+    p.add_argument("--json", dest="json_out", default=None, metavar="OUT.json", help="write the results as JSON")
+    p.add_argument("--plots", default=None, metavar="DIR", help="write error and feature-change plots (PNG) here")
+    p.add_argument("--force", action="store_true", help="overwrite outputs")
+    p.set_defaults(func=cmd_evaluate)
+
+
+def _run_data(p) -> None:
+    p.add_argument("run", metavar="RUN", help="a training run folder (or one of its checkpoints)")
+    p.add_argument("data", metavar="DATA", help="a sequence of the model's mesh (see `meshseq --help`)")
+    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+
+
+def _output(p) -> None:
+    p.add_argument("-o", "--output", required=True, metavar="OUT",
+                   help="output: a .npz, or a folder path for OBJ frames (--format ply for PLY)")
+    p.add_argument("--format", choices=("npz", "obj", "ply"), default=None, help="output format (default: from OUT)")
+    p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
+
+
+def _int_list(text: str, option: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise MeshseqError(f"{option} {text!r}: expected comma-separated integers") from None
+    if not values:
+        raise MeshseqError(f"{option} {text!r}: expected at least one integer")
+    return values
+
+
+def _load(args):
+    """Model, sequence (checked against the model's mesh) and its scaled features."""
+    from meshseq.api import load
+    from meshseq.io import load_sequence
+
+    model = load(args.run, device=args.device)
+    seq = load_sequence(args.data)
+    model.check_mesh(seq.faces, seq.n_vertices, what=args.data)
+    return model, seq
+
+
+def _vae(model, run: str, seq, feats: np.ndarray, exclude: tuple[int, int], iterations: int):
+    """The VAE baseline of this run: loaded from RUN/baselines/vae, else trained on the run's
+    training frames of this data set (all frames outside ``exclude``) and saved there."""
+    from meshseq import baselines
+    from meshseq.checkpoint import resolve
+    from meshseq.mesh import Topology
+
+    topo = Topology.from_faces(model.faces, model.config.n_vertices)
+    run_dir = resolve(run)
+    folder = (run_dir.parent.parent if run_dir.parent.name == "checkpoints" else run_dir) / "baselines" / "vae"
+    if (folder / "vae.json").exists():
+        vae, meta = baselines.load_vae(folder, topo, model.device)
+        if meta.get("data") == seq.source and meta.get("exclude") == list(exclude):
+            return vae
+    frames = np.concatenate([feats[: exclude[0]], feats[exclude[1]:]])
+    if len(frames) < 2:
+        raise MeshseqError(f"{seq.source}: no training frames outside {exclude[0]}:{exclude[1]} for the VAE baseline")
+    vae = baselines.train_vae(frames, topo, latent=model.config.latent, iterations=iterations, device=model.device)
+    baselines.save_vae(vae, folder, {"data": seq.source, "exclude": list(exclude), "iterations": iterations,
+                                     "note": baselines.VAE_NOTE})
+    return vae
+
+
+def _heldout(model, seq, range_text: str | None) -> tuple[int, int]:
+    if range_text:
+        try:
+            a, b = (int(v) for v in range_text.split(":"))
+        except ValueError:
+            raise MeshseqError(f"--range {range_text!r}: expected A:B (frame numbers)") from None
+        if not 0 <= a < b <= seq.n_frames:
+            raise MeshseqError(f"--range {range_text}: must satisfy 0 <= A < B <= {seq.n_frames} (frames of {seq.source})")
+        return a, b
+    src = str(Path(seq.source).resolve()) if seq.source else ""
+    for d in model.meta.get("datasets", []):
+        same = d.get("source") and Path(d["source"]).exists() and str(Path(d["source"]).resolve()) == src
+        if same or (d.get("name") == seq.name and d.get("n_frames") == seq.n_frames):
+            lo, hi = d["split"]["heldout"]
+            if hi <= lo:
+                raise MeshseqError(f"{seq.source}: the run held out no frames of it; give --range A:B")
+            return int(lo), int(hi)
+    names = ", ".join(d.get("source", d.get("name", "?")) for d in model.meta.get("datasets", []))
+    raise MeshseqError(f"{seq.source}: not one of the run's data sets ({names}); give --range A:B")
+
+
+def _write(seq_vertices: np.ndarray, faces: np.ndarray, name: str, args, fps=None) -> Path:
+    from meshseq.io import MeshSequence, save_sequence
+
+    out = MeshSequence(seq_vertices, faces, name=name, fps=fps)
+    return save_sequence(out, args.output, format=args.format, force=args.force)
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def cmd_predict(args) -> int:
+    from meshseq import baselines, synthesize
+    from meshseq.io import check_output
+
+    check_output(args.output, force=args.force)
+    if args.given < 1:
+        raise MeshseqError(f"--given {args.given}: expected at least 1")
+    if args.frames < 1:
+        raise MeshseqError(f"--frames {args.frames}: expected at least 1")
+    model, seq = _load(args)
+    if not 0 <= args.start < seq.n_frames:
+        raise MeshseqError(f"--start {args.start}: {args.data} has frames 0..{seq.n_frames - 1}")
+    if args.start + args.given > seq.n_frames:
+        raise MeshseqError(f"--given {args.given}: only {seq.n_frames - args.start} frames of {args.data} "
+                           f"from --start {args.start}")
+    given_v = seq.vertices[args.start:args.start + args.given]
+    feats = model.features(given_v)
+    if args.method == "ours":
+        gen = synthesize.predict(model, feats, args.frames)
+    elif args.method == "vae_latent":
+        all_feats = model.features(seq.vertices)
+        lo, hi = _heldout(model, seq, None) if _in_run(model, seq) else (args.start, args.start + args.given)
+        vae = _vae(model, args.run, seq, all_feats, (lo, hi), 1000)
+        gen = baselines.vae_latent(vae, feats[None], args.frames)[0]
+        print(f"note: {baselines.VAE_NOTE}")
+    else:
+        gen = getattr(baselines, args.method)(feats[None], args.frames)[0]
+    u = args.given
+    if args.method == "zero_velocity":
+        verts = np.concatenate([given_v, np.repeat(given_v[-1:], args.frames, 0)])
+    else:
+        allf = np.concatenate([feats, gen])
+        verts = synthesize.assemble_vertices(model, allf, {i: given_v[i] for i in range(u)})
+    path = _write(verts, seq.faces, f"{seq.name}_predicted", args, seq.fps)
+    print(f"wrote {path}: {u} given + {args.frames} generated frames ({args.method})")
+    return 0
+
+
+def _in_run(model, seq) -> bool:
+    try:
+        _heldout(model, seq, None)
+        return True
+    except MeshseqError:
+        return False
+
+
+def cmd_complete(args) -> int:
+    from meshseq import baselines, synthesize
+    from meshseq.io import MeshSequence, atomic_output, check_output, save_sequence
+
+    check_output(args.output, force=args.force)
+    keys = _int_list(args.keyframes, "--keyframes")
+    if len(keys) < 2:
+        raise MeshseqError(f"--keyframes {args.keyframes}: give at least two keyframes")
+    if any(b <= a for a, b in zip(keys, keys[1:])):
+        raise MeshseqError(f"--keyframes {args.keyframes}: keyframes must be strictly increasing")
+    if args.samples < 1:
+        raise MeshseqError(f"--samples {args.samples}: expected at least 1")
+    if args.between is not None and args.between < 0:
+        raise MeshseqError(f"--between {args.between}: expected >= 0")
+    if args.samples > 1 and Path(args.output).suffix:
+        raise MeshseqError(f"-o {args.output}: with --samples > 1 the output is a folder (one file per "
+                           "sample and diversity.json); give a path without an extension")
+    if args.method != "ours" and args.samples > 1:
+        raise MeshseqError(f"--samples {args.samples}: several samples need --method ours")
+    model, seq = _load(args)
+    if keys[0] < 0 or keys[-1] >= seq.n_frames:
+        raise MeshseqError(f"--keyframes {args.keyframes}: {args.data} has frames 0..{seq.n_frames - 1}")
+    key_v = seq.vertices[keys]
+    key_f = model.features(key_v)
+    gaps = [args.between if args.between is not None else b - a - 1 for a, b in zip(keys, keys[1:])]
+    samples_v = []
+    for s in range(args.samples):
+        parts, anchors, offset = [], {}, 0
+        for i, gap in enumerate(gaps):
+            if args.method == "ours":
+                comp = synthesize.complete(model, key_f[i], key_f[i + 1], gap, samples=1,
+                                           random_state=args.samples > 1, seed=args.seed * 1000 + s * 97 + i)
+                f = comp.frames[0]
+            elif args.method == "cma":
+                f = synthesize.complete_cma(model, key_f[i], key_f[i + 1], gap, max_evals=args.cma_evals,
+                                            max_seconds=args.cma_seconds, seed=args.seed + i).frames[0]
+            else:
+                f = baselines.linear_interpolation(key_f[i], key_f[i + 1], gap)
+            parts.append(f if i == 0 else f[1:])
+            anchors[offset] = key_v[i]
+            offset += gap + 1
+            anchors[offset] = key_v[i + 1]
+        feats = np.concatenate(parts)
+        samples_v.append(synthesize.assemble_vertices(model, feats, anchors))
+    if args.samples == 1:
+        path = _write(samples_v[0], seq.faces, f"{seq.name}_completed", args, seq.fps)
+        print(f"wrote {path}: {len(samples_v[0])} frames through keyframes {keys} ({args.method})")
+        return 0
+    diversity = baselines.pairwise_diversity(np.stack(samples_v))
+    fmt = args.format or "npz"
+    with atomic_output(args.output, force=args.force) as tmp:
+        tmp.mkdir()
+        for s, verts in enumerate(samples_v):
+            name = f"sample_{s:02d}" + (".npz" if fmt == "npz" else "")
+            save_sequence(MeshSequence(verts, seq.faces, name=f"{seq.name}_sample{s}", fps=seq.fps),
+                          tmp / name, format=fmt)
+        (tmp / "diversity.json").write_text(json.dumps(
+            {"samples": args.samples, "seed": args.seed, "keyframes": keys,
+             "mean_pairwise_vertex_distance": diversity, "units": "data units"}, indent=2))
+    print(f"wrote {args.samples} completions and diversity.json (mean pairwise distance {diversity:.4g})")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from meshseq import baselines, evaluate
+    from meshseq.io import atomic_output, check_output
+
+    if args.json_out:
+        check_output(args.json_out, force=args.force)
+    if args.plots:
+        check_output(args.plots, force=args.force)
+    given = _int_list(args.given, "--given")
+    horizons = _int_list(args.horizons, "--horizons")
+    if min(given) < 1 or min(horizons) < 1:
+        raise MeshseqError("--given and --horizons must be positive")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    for m in methods:
+        if m not in baselines.PREDICTION_METHODS:
+            raise MeshseqError(f"--methods: unknown method {m!r}; expected some of {', '.join(baselines.PREDICTION_METHODS)}")
+    gaps = [] if args.gaps.strip().lower() == "none" else _int_list(args.gaps, "--gaps")
+    model, seq = _load(args)
+    lo, hi = _heldout(model, seq, args.range)
+    feats = model.features(seq.vertices)
+    vae = _vae(model, args.run, seq, feats, (lo, hi), args.vae_iterations) if "vae_latent" in methods else None
+    result = {"dataset": seq.name, "source": seq.source, "range": [lo, hi], "units": "x1e-4",
+              "iteration": model.iteration, "variant": model.config.variant,
+              "errors": {}, "errors_aligned": {}, "curves": {}, "notes": []}
+    if vae is not None:
+        result["notes"].append(baselines.VAE_NOTE)
+    for u in given:
+        errs = evaluate.prediction_errors(model, seq.vertices, feats, lo, hi, u, horizons, methods, vae=vae)
+        for m, r in errs.items():
+            result["errors"].setdefault(m, {})[f"u{u}"] = r["centroid"]
+            result["errors_aligned"].setdefault(m, {})[f"u{u}"] = r["rigid"]
+            result["curves"].setdefault(m, {})[f"u{u}"] = r["curve"]
+            result.setdefault("starts", {})[f"u{u}"] = r["starts"]
+    # two given frames, so the extrapolating baselines have a velocity to continue
+    starts = evaluate.prediction_starts(lo, hi, 2, 0)
+    result["feature_change"] = evaluate.feature_change(model, feats, starts, 2, args.curve_frames,
+                                                       [m for m in methods if m != "zero_velocity"], vae)
+    if gaps:
+        result["completion"] = evaluate.completion_errors(
+            model, seq.vertices, feats, lo, hi, gaps, ["ours", "cma", "linear"], samples=args.samples,
+            cma_evals=args.cma_evals, cma_seconds=args.cma_seconds)
+    _print_tables(result, horizons)
+    if args.json_out:
+        with atomic_output(args.json_out, force=args.force) as tmp:
+            Path(tmp).write_text(json.dumps(result, indent=2))
+        print(f"wrote {args.json_out}")
+    if args.plots:
+        _plots(result, args.plots, args.force)
+        print(f"wrote plots to {args.plots}/")
+    return 0
+
+
+def _print_tables(result: dict, horizons: list[int]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    for key, title in (("errors", "translation removed"), ("errors_aligned", "rigidly aligned")):
+        table = Table(title=f"{result['dataset']} frames {result['range'][0]}:{result['range'][1]}: "
+                      f"per-vertex error x 1e-4 ({title})")
+        table.add_column("method")
+        cols = [(u, h) for u in next(iter(result[key].values())) for h in horizons]
+        for u, h in cols:
+            table.add_column(f"{u} h{h}", justify="right")
+        for m, per_u in result[key].items():
+            table.add_row(m, *[f"{per_u[u][str(h)]:.1f}" for u, h in cols])
+        console.print(table)
+    if "completion" in result:
+        table = Table(title="completion: in-between error x 1e-4 (and diversity of samples)")
+        table.add_column("gap")
+        for col in ("ours", "cma", "linear", "diversity"):
+            table.add_column(col, justify="right")
+        for gap, r in result["completion"].items():
+            table.add_row(gap, *[f"{r[c]:.1f}" if c in r else "-" for c in ("ours", "cma", "linear", "diversity")])
+        console.print(table)
+
+
+def _plots(result: dict, folder: str, force: bool) -> None:
+    from meshseq import plots
+    from meshseq.io import atomic_output
+
+    with atomic_output(folder, force=force) as tmp:
+        tmp.mkdir()
+        for u in next(iter(result["curves"].values())):
+            fig = plots.error_vs_horizon({m: np.array(c[u]) * 1e-4 for m, c in result["curves"].items()},
+                                         title=f"{result['dataset']}: error vs horizon ({u})")
+            plots.save_figure(fig, tmp / f"error_{u}.png")
+        curves = {m: np.array(c) for m, c in result["feature_change"].items() if m != "ground_truth"}
+        fig = plots.feature_change_curve(curves, title=f"{result['dataset']}: feature change "
+                                         f"(ground truth mean {result['feature_change']['ground_truth']:.3g})")
+        ax = fig.axes[0]
+        ax.axhline(result["feature_change"]["ground_truth"], color="k", ls="--", label="ground truth")
+        ax.legend()
+        plots.save_figure(fig, tmp / "feature_change.png")

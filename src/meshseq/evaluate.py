@@ -1,0 +1,150 @@
+"""Evaluation of the paper's tables and figure (method.md 4) on held-out frames.
+
+- ``prediction_errors``: per-vertex position error in the data's units (reported x 1e-4) at
+  given horizons after u given frames, for our model and every prediction baseline, averaged over
+  every start in the held-out range that has enough frames; after removing translation
+  (centroids) and after a rigid (Kabsch) alignment.
+- ``feature_change``: mean ``||X_t - X_{t+1}|| / ||X_t||`` (raw ACAP features) along generated
+  sequences (the paper's Fig. 3), beside the ground truth's level.
+- ``completion_errors``: in-between error of completions against the truth for held-out gaps,
+  for ours, CMA-ES and linear interpolation, and the diversity of K random-state samples.
+
+Functions take arrays and a loaded ``meshseq.api.Model``; they print nothing.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from meshseq import baselines
+from meshseq.align import per_vertex_error
+from meshseq.errors import MeshseqError
+from meshseq.plots import feature_change as relative_change
+from meshseq.synthesize import assemble_vertices, complete, complete_cma, predict
+
+UNITS = 1e-4  # errors are reported in the data's units x 1e-4 (paper's tables)
+
+
+def prediction_starts(lo: int, hi: int, given: int, horizon: int, every: int = 1) -> np.ndarray:
+    """First-given-frame indices ``s`` with ``s .. s + given - 1 + horizon`` inside ``[lo, hi)``."""
+    last = hi - given - horizon
+    return np.arange(lo, last + 1, max(1, every))
+
+
+def predicted_features(method: str, model, feats: np.ndarray, starts: np.ndarray, given: int,
+                       n_frames: int, vae=None) -> np.ndarray:
+    """Scaled features ``(B, n, V, 9)`` predicted by ``method`` after ``feats[s:s+given]``."""
+    windows = np.stack([feats[s:s + given] for s in starts])  # (B, U, V, 9)
+    if method == "ours":
+        return predict(model, windows, n_frames)
+    if method == "zero_velocity":
+        return baselines.zero_velocity(windows, n_frames)
+    if method == "linear_acap":
+        return baselines.linear_acap(windows, n_frames)
+    if method == "vae_latent":
+        if vae is None:
+            raise MeshseqError("the vae_latent baseline needs a trained mesh VAE")
+        return baselines.vae_latent(vae, windows, n_frames)
+    raise MeshseqError(f"unknown prediction method {method!r}; expected one of {baselines.PREDICTION_METHODS}")
+
+
+def prediction_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, hi: int,
+                      given: int, horizons: list[int], methods: list[str], vae=None,
+                      every: int = 1) -> dict:
+    """Errors per method in units of 1e-4, averaged over every start in ``[lo, hi)``.
+
+    ``vertices`` ``(T, V, 3)`` true positions and ``feats`` ``(T, V, 9)`` their scaled features;
+    the held-out range is ``[lo, hi)``. Zero velocity is measured in vertex space (the last given
+    frame's true vertices: no reconstruction error); the others are reconstructed from features.
+
+    Returns ``{method: {"centroid": {str(h): e}, "rigid": {str(h): e}, "curve": [e_1..e_H],
+    "starts": n}}`` (``curve``: centroid-aligned error at every horizon 1..max(horizons)).
+    """
+    h_max = max(horizons)
+    starts = prediction_starts(lo, hi, given, h_max, every)
+    if len(starts) == 0:
+        raise MeshseqError(f"the range {lo}:{hi} has no room for {given} given frames and a horizon of "
+                           f"{h_max} ({hi - lo} frames; need at least {given + h_max})")
+    steps = np.arange(1, h_max + 1)
+    truth = np.stack([vertices[s + given - 1 + steps] for s in starts])  # (B, H, V, 3)
+    flat_truth = truth.reshape(-1, *truth.shape[2:])
+    out = {}
+    for method in methods:
+        if method == "zero_velocity":
+            pred = np.repeat(np.stack([vertices[s + given - 1] for s in starts])[:, None], h_max, 1)
+        else:
+            f = predicted_features(method, model, feats, starts, given, h_max, vae)  # (B, H, V, 9)
+            pred = model.vertices(f.reshape(-1, *f.shape[2:])).reshape(truth.shape)
+        flat = pred.reshape(flat_truth.shape)
+        res = {"starts": int(len(starts))}
+        for key, rigid in (("centroid", False), ("rigid", True)):
+            err = per_vertex_error(flat, flat_truth, rigid=rigid).mean(axis=-1).reshape(len(starts), h_max)
+            curve = err.mean(axis=0) / UNITS
+            res[key] = {str(h): float(curve[h - 1]) for h in horizons}
+            if not rigid:
+                res["curve"] = curve.tolist()
+        out[method] = res
+    return out
+
+
+def feature_change(model, feats: np.ndarray, starts: np.ndarray, given: int, n_frames: int,
+                   methods: list[str], vae=None) -> dict:
+    """Mean feature-change curve (length ``n_frames``) per method, plus ``ground_truth``'s mean level.
+
+    The curve starts at the step from the last given frame to the first generated one.
+    """
+    out = {}
+    for method in methods:
+        windows_last = np.stack([feats[s + given - 1] for s in starts])[:, None]
+        f = predicted_features(method, model, feats, starts, given, n_frames, vae)
+        raw = model.scaling.invert(np.concatenate([windows_last, f], axis=1).astype(np.float64))
+        out[method] = relative_change(raw).tolist()
+    raw_truth = model.scaling.invert(feats.astype(np.float64))
+    out["ground_truth"] = float(relative_change(raw_truth).mean())
+    return out
+
+
+def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, hi: int,
+                      gaps: list[int], methods: list[str], samples: int = 4, seed: int = 0,
+                      max_starts: int = 8, cma_evals: int = 200, cma_seconds: float = 20.0) -> dict:
+    """In-between errors (x 1e-4, centroid-aligned, mean over in-between frames and starts) for
+    held-out gaps, and the diversity of ``samples`` random-state completions (ours).
+
+    Returns ``{str(gap): {method: error, ..., "diversity": d, "starts": n}}``.
+    """
+    out = {}
+    for gap in gaps:
+        starts = np.arange(lo, hi - gap - 1)
+        if len(starts) == 0:
+            continue
+        starts = starts[np.linspace(0, len(starts) - 1, min(max_starts, len(starts))).astype(int)]
+        res: dict = {"starts": int(len(starts))}
+        errs = {m: [] for m in methods}
+        diversity = []
+        for s in starts:  # a handful of gaps; each completion is batched inside
+            a, b = s, s + gap + 1
+            truth = vertices[a:b + 1]
+            anchors = {0: vertices[a], gap + 1: vertices[b]}
+            for m in methods:
+                if m == "ours":
+                    f = complete(model, feats[a], feats[b], gap).frames[0]
+                elif m == "cma":
+                    f = complete_cma(model, feats[a], feats[b], gap, max_evals=cma_evals,
+                                     max_seconds=cma_seconds, seed=seed).frames[0]
+                elif m == "linear":
+                    f = baselines.linear_interpolation(feats[a], feats[b], gap)
+                else:
+                    raise MeshseqError(f"unknown completion method {m!r}; expected one of "
+                                       f"{baselines.COMPLETION_METHODS}")
+                verts = assemble_vertices(model, f, anchors)
+                errs[m].append(per_vertex_error(verts[1:-1], truth[1:-1]).mean() / UNITS)
+            if samples > 1:
+                many = complete(model, feats[a], feats[b], gap, samples=samples, seed=seed + int(s))
+                verts = np.stack([assemble_vertices(model, f, anchors)[1:-1] for f in many.frames])
+                diversity.append(baselines.pairwise_diversity(verts) / UNITS)
+        for m in methods:
+            res[m] = float(np.mean(errs[m]))
+        if diversity:
+            res["diversity"] = float(np.mean(diversity))
+        out[str(gap)] = res
+    return out
