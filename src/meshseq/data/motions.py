@@ -67,11 +67,14 @@ class Motion:
         hop: ``(T,)`` height in metres added above the floor contact.
         travels: the body moves so that the stance foot stays fixed (walk) instead of keeping
             both feet where they are.
+        contact: ``(T,)`` weight in [0, 1] of the left foot as the stance foot (travelling
+            motions; the right foot has ``1 - contact``).
     """
 
     rotations: dict[str, np.ndarray]
     hop: np.ndarray
     travels: bool = False
+    contact: np.ndarray | None = None
     name: str = ""
     params: MotionParams = field(default_factory=MotionParams)
 
@@ -129,15 +132,17 @@ class _Side:
     * ``shoulder(abduct, flex, adduct_h)``: abduct > 0 raises the arm sideways from the A-pose
       (about -35 hangs it at the side), flex > 0 raises it forward, adduct_h > 0 brings it
       across the front of the body.
-    * ``elbow(flex)``: flex > 0 bends the forearm forward (hinge axis from the rest skeleton).
+    * ``elbow(flex)``: sets the elbow's flexion to ``flex`` (0 = straight; the rest A-pose has
+      it bent forward by ``elbow_rest``) about the hinge axis of the rest skeleton. Call it
+      once per side.
     * ``elbow_up(angle)``: rotates the forearm in the coronal plane, > 0 upwards/outwards.
     * ``wrist(flex)``.
     """
 
-    def __init__(self, n: int, elbow_axis: np.ndarray):
+    def __init__(self, n: int, rig: "RigAxes"):
         self.n = n
+        self.rig = rig
         self.rot: dict[str, np.ndarray] = {}
-        self.elbow_axis = elbow_axis
         self._leg_pitch = np.zeros(n)
         self._leg_roll = np.zeros(n)
 
@@ -173,13 +178,23 @@ class _Side:
         self._apply("upperarm01.L", _axis_rotation(_Z, -adduct_h))
 
     def elbow(self, flex=0.0) -> None:
-        self._apply("lowerarm01.L", _axis_rotation(self.elbow_axis, self._angles(flex)))
+        self._apply("lowerarm01.L", _axis_rotation(self.rig.elbow_axis, self._angles(flex) - self.rig.elbow_rest))
 
     def elbow_up(self, angle=0.0) -> None:
         self._apply("lowerarm01.L", _axis_rotation(_Y, -self._angles(angle)))
 
     def wrist(self, flex=0.0) -> None:
         self._apply("wrist.L", _axis_rotation(_X, -self._angles(flex)))
+
+    def fingers(self, curl=0.0) -> None:
+        """Curl the four fingers (1 = a fist, 0.3 = relaxed) and the thumb about the knuckle line."""
+        curl = self._angles(curl)
+        for joint, angle in ((1, 85.0), (2, 100.0), (3, 70.0)):
+            R = _axis_rotation(self.rig.knuckle_axis, angle * curl)
+            for finger in (2, 3, 4, 5):
+                self._apply(f"finger{finger}-{joint}.L", R)
+        self._apply("finger1-2.L", _axis_rotation(self.rig.knuckle_axis, 35.0 * curl))
+        self._apply("finger1-3.L", _axis_rotation(self.rig.knuckle_axis, 45.0 * curl))
 
     def mirrored(self) -> dict[str, np.ndarray]:
         """These rotations as the right side's (bone labels ``.L`` -> ``.R``, mirrored)."""
@@ -200,12 +215,12 @@ def _spine(n: int, pitch=0.0, yaw=0.0, roll=0.0, bones=("spine04", "spine03", "s
 
 
 def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionParams | None = None,
-                  elbow_axis: np.ndarray | None = None) -> Motion:
+                  rig: "RigAxes | None" = None) -> Motion:
     """Joint rotations of motion ``name`` over ``n_frames`` frames at ``fps``.
 
     Args:
-        elbow_axis: the left elbow's hinge axis ``(3,)`` in rest (world) coordinates; default
-            the one of Anny's default body (perpendicular to the upper arm and the front).
+        rig: hinge axes of the body's rest skeleton (:meth:`RigAxes.from_heads`); default
+            those of Anny's default body.
     """
     key = canonical_motion(name)
     if key is None:
@@ -213,10 +228,11 @@ def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionPar
     p = params or MotionParams()
     t = np.arange(n_frames, dtype=np.float64) / float(fps)
     phi = 2.0 * np.pi * BASE_FREQUENCY[key] * p.speed * t + p.phase
-    axis = DEFAULT_ELBOW_AXIS if elbow_axis is None else np.asarray(elbow_axis, dtype=np.float64)
-    left, right = _Side(n_frames, axis), _Side(n_frames, axis)
+    rig = rig or RigAxes.default()
+    left, right = _Side(n_frames, rig), _Side(n_frames, rig)
     central: dict[str, np.ndarray] = {}
     hop = np.zeros(n_frames)
+    contact = None
     A = p.amplitude
     travels = False
 
@@ -226,14 +242,20 @@ def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionPar
             # Hip flexes forward through the swing (sin rising), knee bends early in the swing
             # and a little after heel strike, the foot stays nearly level.
             hip = A * 24.0 * np.sin(ph)
-            knee = A * (55.0 * (0.5 + 0.5 * np.cos(ph + 0.35)) ** 2
-                        + 10.0 * (0.5 + 0.5 * np.cos(ph - np.pi / 2 - 0.5)) ** 6)
+            # Knee: peak flexion (about 55 deg) early in the swing, straight at heel strike (ph = pi/2),
+            # a small loading flexion just after it.
+            knee = A * (52.0 * np.exp(2.0 * (np.cos(ph + 0.12) - 1.0))
+                        + 12.0 * np.exp(3.0 * (np.cos(ph - np.pi / 2 - 0.9) - 1.0)))
             side.hip(flex=hip, abduct=2.0)
             side.knee(flex=5.0 + knee)
             side.flat_foot(extra_pitch=A * 8.0 * np.sin(ph + 0.6))
             # The arm swings against the leg of the same side.
-            side.shoulder(abduct=-33.0, flex=A * 18.0 * np.sin(ph + np.pi))
-            side.elbow(flex=18.0 + A * 12.0 * (0.5 + 0.5 * np.sin(ph + np.pi)))
+            side.shoulder(abduct=-28.0, flex=A * 18.0 * np.sin(ph + np.pi))
+            side.elbow(flex=15.0 + A * 15.0 * (0.5 + 0.5 * np.sin(ph + np.pi)))
+        # The stance foot: the left one from heel strike (phi = pi/2) to toe-off (60 % later).
+        stance_l = np.exp(4.0 * np.cos(phi - np.pi / 2 - 0.6 * np.pi))
+        stance_r = np.exp(4.0 * np.cos(phi + np.pi - np.pi / 2 - 0.6 * np.pi))
+        contact = stance_l / (stance_l + stance_r)
         central.update(_spine(n_frames, pitch=3.0, yaw=A * 6.0 * np.sin(phi + np.pi)))
         central["spine05"] = _axis_rotation(_Z, A * 4.0 * np.sin(phi))
 
@@ -246,7 +268,7 @@ def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionPar
             side.hip(flex=A * 6.0 * land, abduct=A * 16.0 * s)
             side.knee(flex=A * 14.0 * land)
             side.flat_foot()
-            side.shoulder(abduct=-34.0 + A * 160.0 * s)
+            side.shoulder(abduct=-28.0 + A * 154.0 * s)
             side.elbow(flex=12.0 + 8.0 * s)
         central.update(_spine(n_frames, pitch=A * 5.0 * land))
         hop = A * 0.07 * np.sin(phi) ** 2
@@ -260,8 +282,9 @@ def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionPar
             side.knee(flex=18.0)
             side.flat_foot()
             side.shoulder(abduct=-40.0 + 8.0 * e, flex=55.0 + 30.0 * e, adduct_h=12.0 * e)
-            side.elbow(flex=125.0 - 115.0 * e)
+            side.elbow(flex=115.0 - 105.0 * e)
             side.wrist(flex=-10.0)
+            side.fingers(curl=1.0)
         central.update(_spine(n_frames, pitch=8.0, yaw=A * 22.0 * (pr - pl)))
 
     elif key == "shake_arms":
@@ -288,7 +311,7 @@ def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionPar
             side.hip(flex=pelvis + 85.0 * s, abduct=6.0 + 6.0 * s)
             side.knee(flex=110.0 * s)
             side.flat_foot(body_pitch=pelvis)
-            side.shoulder(abduct=-33.0 + 18.0 * s, flex=85.0 * s)
+            side.shoulder(abduct=-28.0 + 18.0 * s, flex=85.0 * s)
             side.elbow(flex=10.0)
         central.update(_spine(n_frames, pitch=25.0 * s))
 
@@ -298,11 +321,12 @@ def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionPar
         raise_ = 0.8 + 0.2 * np.sin(phi)  # the arm sinks and rises a little once a cycle
         left.hip(flex=2.0)
         left.flat_foot()
-        left.shoulder(abduct=-33.0)
+        left.shoulder(abduct=-28.0)
         left.elbow(flex=12.0)
         right.hip(flex=2.0)
         right.flat_foot()
-        right.shoulder(abduct=-33.0 + (33.0 + A * 48.0) * raise_, flex=18.0 * raise_)
+        right.shoulder(abduct=-28.0 + (28.0 + A * 48.0) * raise_, flex=18.0 * raise_)
+        right.elbow(flex=10.0)
         right.elbow_up(angle=raise_ * (70.0 + A * 22.0 * w))
         right.wrist(flex=A * 15.0 * w * raise_)
         central.update(_spine(n_frames, yaw=-6.0 * raise_, roll=A * 2.0 * w * raise_))
@@ -325,8 +349,50 @@ def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionPar
     rotations = dict(central)
     rotations.update(left.rot)
     rotations.update(right.mirrored())
-    return Motion(rotations=rotations, hop=hop, travels=travels, name=key, params=p)
+    return Motion(rotations=rotations, hop=hop, travels=travels, contact=contact, name=key, params=p)
 
 
-#: Elbow hinge of Anny's default body: perpendicular to the rest upper arm and the front (-y).
-DEFAULT_ELBOW_AXIS = np.cross(np.array([0.66, 0.0, -0.75]), np.array([0.0, -1.0, 0.0]))
+@dataclass(frozen=True)
+class RigAxes:
+    """Hinge axes of a body's rest skeleton (left side, world coordinates).
+
+    Attributes:
+        elbow_axis: ``(3,)`` perpendicular to the upper arm and the front (-y); flexing about
+            it bends the forearm forward.
+        elbow_rest: the elbow's flexion in the rest A-pose (degrees; about 44 for Anny).
+        knuckle_axis: ``(3,)`` along the knuckles (index to little finger base); curling the
+            fingers about it closes the hand.
+    """
+
+    elbow_axis: np.ndarray
+    elbow_rest: float
+    knuckle_axis: np.ndarray
+
+    @staticmethod
+    def from_heads(heads: dict[str, np.ndarray]) -> "RigAxes":
+        """From rest bone-head positions ``(3,)`` of ``upperarm01.L``, ``lowerarm01.L``,
+        ``wrist.L``, ``finger2-1.L`` and ``finger5-1.L``."""
+        h = {k: np.asarray(v, dtype=np.float64) for k, v in heads.items()}
+        arm = h["lowerarm01.L"] - h["upperarm01.L"]
+        fore = h["wrist.L"] - h["lowerarm01.L"]
+        axis = np.cross(arm / np.linalg.norm(arm), np.array([0.0, -1.0, 0.0]))
+        cos = arm @ fore / (np.linalg.norm(arm) * np.linalg.norm(fore))
+        knuckles = h["finger2-1.L"] - h["finger5-1.L"]
+        return RigAxes(elbow_axis=axis / np.linalg.norm(axis),
+                       elbow_rest=float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
+                       knuckle_axis=knuckles / np.linalg.norm(knuckles))
+
+    @staticmethod
+    def default() -> "RigAxes":
+        """Those of Anny's default body."""
+        return RigAxes.from_heads(DEFAULT_HEADS)
+
+
+#: Rest bone heads (metres) of Anny's default body that :class:`RigAxes` needs.
+DEFAULT_HEADS = {
+    "upperarm01.L": (0.162, -0.017, 0.467), "lowerarm01.L": (0.329, -0.021, 0.279),
+    "wrist.L": (0.446, -0.179, 0.164), "finger2-1.L": (0.473, -0.273, 0.125),
+    "finger5-1.L": (0.497, -0.220, 0.098),
+}
+#: The bones :meth:`RigAxes.from_heads` reads.
+RIG_BONES = tuple(DEFAULT_HEADS)
