@@ -33,40 +33,60 @@ def make(topo, variant="bd", conv="sparse", latent=16, layers=2, seed=0):
 
 
 def ring_mean_reference(x: np.ndarray, topo: Topology) -> np.ndarray:
-    """Brute-force 1-ring mean (B, V, C) from the adjacency lists."""
-    adj = topo.adjacency.tolil().rows
-    return np.stack([np.stack([x[:, list(r)].mean(1) for r in adj], 1)])[0]
+    """Brute-force 1-ring mean of vertex-major ``(V, ...)`` from the adjacency lists."""
+    return np.stack([x[list(r)].mean(0) for r in topo.adjacency.tolil().rows])
 
 
 @pytest.mark.parametrize("impl", ["sparse", "gather"])
 def test_neighbor_mean_matches_brute_force_and_gradients_agree(limb, impl):
-    x = torch.randn(3, limb.n_vertices, 5, dtype=torch.float32, requires_grad=True)
+    x = torch.randn(limb.n_vertices, 3, 5, dtype=torch.float32, requires_grad=True)
     ring = NeighborMean(limb, impl)
     y = ring(x)
     np.testing.assert_allclose(y.detach().numpy(), ring_mean_reference(x.detach().numpy(), limb), atol=1e-6)
     # backward = transpose of the mean operator: <A x, g> = <x, A^T g>
     g = torch.randn_like(y)
     (gx,) = torch.autograd.grad(y, x, g)
-    A = torch.from_numpy((topo_adj := limb.adjacency.toarray()) / topo_adj.sum(1, keepdims=True)).float()
-    expected = torch.einsum("vw,bvc->bwc", A, g)
-    torch.testing.assert_close(gx, expected, atol=1e-5, rtol=1e-5)
+    adj = limb.adjacency.toarray()
+    A = torch.from_numpy(adj / adj.sum(1, keepdims=True)).float()
+    torch.testing.assert_close(gx, torch.einsum("vw,vbc->wbc", A, g), atol=1e-5, rtol=1e-5)
 
 
 def test_mesh_conv_is_paper_eq2(limb):
     ring = NeighborMean(limb, "sparse")
     conv = MeshConv(9, 9, ring)
-    x = torch.randn(2, limb.n_vertices, 9)
+    x = torch.randn(limb.n_vertices, 2, 9)  # vertex-major (V, B, C)
     W1, W2 = conv.weight[:9].detach(), conv.weight[9:].detach()
+    ring_x = torch.from_numpy(ring_mean_reference(x.numpy(), limb)).float()
     with torch.no_grad():
         conv.bias.uniform_()
-        expected = x @ W1 + torch.from_numpy(ring_mean_reference(x.numpy(), limb)).float() @ W2 + conv.bias
-        torch.testing.assert_close(conv(x), expected, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(conv(x), x @ W1 + ring_x @ W2 + conv.bias, atol=1e-5, rtol=1e-5)
         b = torch.randn(9)
-        torch.testing.assert_close(
-            conv(x, transpose=True, bias=b),
-            x @ W1.t() + torch.from_numpy(ring_mean_reference(x.numpy(), limb)).float() @ W2.t() + b,
-            atol=1e-5, rtol=1e-5,
-        )
+        torch.testing.assert_close(conv(x, transpose=True, bias=b), x @ W1.t() + ring_x @ W2.t() + b,
+                                   atol=1e-5, rtol=1e-5)
+
+
+def test_fc_weight_gradient_summed_over_time_equals_plain_autograd(limb):
+    """The one-matmul FC weight gradient of a roll-out equals step-by-step autograd."""
+    m = make(limb)
+    w = torch.randn(2, 5, limb.n_vertices, 9) * 0.1
+
+    def grads(deferred):
+        m.zero_grad()
+        fc = m._fc_ops(deferred=deferred)
+        x = w[:, 0].transpose(0, 1).contiguous()
+        state = m.initial_state(2)
+        total = 0
+        for t in range(1, 5):
+            state, x, mu, _ = m._step_vm(state, x, fc, False, None)
+            total = total + (x - w[:, t].transpose(0, 1)).square().sum() + mu.square().sum()
+        (total + m.fc.weight.square().sum()).backward()
+        return {n: p.grad.clone() for n, p in m.named_parameters() if p.grad is not None}
+
+    plain, deferred = grads(False), grads(True)
+    assert plain.keys() == deferred.keys() and "fc.weight" in plain
+    for n in plain:
+        torch.testing.assert_close(deferred[n], plain[n], atol=1e-5, rtol=1e-4, msg=n)
+    assert plain["fc.weight"].abs().sum() > 0
 
 
 def test_shapes_of_every_variant(limb):

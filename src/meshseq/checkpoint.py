@@ -116,7 +116,11 @@ def save_checkpoint(
     _fsync_dir(root)
     for old in list_checkpoints(run_dir)[:-keep] if keep > 0 else []:
         if old != final:
-            shutil.rmtree(old, ignore_errors=True)
+            # rename first (atomic), then delete: a kill mid-delete must not leave a partial
+            # folder under a checkpoint's name
+            doomed = root / f".old-{old.name}-{os.getpid()}"
+            os.replace(old, doomed)
+            shutil.rmtree(doomed, ignore_errors=True)
     return final
 
 

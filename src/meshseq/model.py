@@ -93,6 +93,10 @@ class ModelConfig:
 
 # --------------------------------------------------------------------------------------------
 # 1-ring mean operators
+#
+# Inside the network, frames are vertex-major: ``(V, B, C)``. The ring mean is then a sparse
+# matrix times the ``(V, B*C)`` view and the channel maps are one ``(V*B, C) @ (C, C)`` matmul,
+# with no transposes; only the FC layers need ``(B, V*C)`` (one copy in, one out per step).
 
 
 class _SparseMean(torch.autograd.Function):
@@ -109,11 +113,11 @@ class _SparseMean(torch.autograd.Function):
 
 
 class NeighborMean(nn.Module):
-    """The 1-ring mean ``(1/d_i) sum_{j in N(i)} x_j`` on ``(B, V, C)`` tensors.
+    """The 1-ring mean ``(1/d_i) sum_{j in N(i)} x_j`` of vertex-major tensors ``(V, ...)``.
 
-    ``impl="gather"``: a padded ``(V, D)`` index table and weights ``mask / d`` (work ``B V D C``);
-    ``impl="sparse"``: a row-normalised sparse ``(V, V)`` CSR matrix applied to ``(V, B C)``.
-    Isolated vertices (degree 0) get 0.
+    ``impl="sparse"``: a row-normalised sparse ``(V, V)`` CSR matrix times the ``(V, N)`` view;
+    ``impl="gather"``: a padded ``(V, D)`` index table (D the largest degree) and weights
+    ``mask / d`` (work ``V D N``). Isolated vertices (degree 0) get 0.
     """
 
     def __init__(self, topology: Topology, impl: str = "sparse"):
@@ -143,22 +147,22 @@ class NeighborMean(nn.Module):
                 self.register_buffer("At", At.to_sparse_csr(), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """``x`` ``(B, V, C)`` -> ``(B, V, C)``."""
-        B, V, C = x.shape
-        xt = x.transpose(0, 1).reshape(V, B * C)  # rows of B*C contiguous values per vertex
+        """``x`` ``(V, ...)`` -> ``(V, ...)``."""
+        V = x.shape[0]
+        xv = x.reshape(V, -1)
         if self.impl == "gather":
-            g = xt.index_select(0, self.index).view(V, self.width, B * C)
+            g = xv.index_select(0, self.index).view(V, self.width, -1)
             y = torch.einsum("vdn,vd->vn", g, self.weight)
         else:
-            y = _SparseMean.apply(xt, self.A, self.At)
-        return y.view(V, B, C).transpose(0, 1)
+            y = _SparseMean.apply(xv, self.A, self.At)
+        return y.view(x.shape)
 
 
 class MeshConv(nn.Module):
-    """Paper Eq. 2 on ``(B, V, C_in)`` -> ``(B, V, C_out)``: ``x W1 + mean_ring(x) W2 + b``.
+    """Paper Eq. 2 on vertex-major ``(V, ..., C_in)`` -> ``(V, ..., C_out)``: ``x W1 + mean_ring(x) W2 + b``.
 
     ``forward(x, transpose=True, bias=b)`` applies the layer's weights transposed with another
-    bias (the tied decoder), ``(B, V, C_out)`` -> ``(B, V, C_in)``.
+    bias (the tied decoder), ``(V, ..., C_out)`` -> ``(V, ..., C_in)``.
     """
 
     def __init__(self, c_in: int, c_out: int, ring: NeighborMean):
@@ -175,8 +179,95 @@ class MeshConv(nn.Module):
         else:
             w1, w2 = self.weight[: self.c_in], self.weight[self.c_in :]
         b = self.bias if bias is None else bias
+        rows = x.reshape(-1, x.shape[-1])
         # mean_ring(x) W2 == mean_ring(x W2): apply the (linear) ring mean after the channel map.
-        return torch.addmm(b, x.reshape(-1, x.shape[-1]), w1).view(*x.shape[:-1], -1) + self.ring(x @ w2)
+        y = torch.addmm(b, rows, w1).view(*x.shape[:-1], -1)
+        return y + self.ring((rows @ w2).view(*x.shape[:-1], -1))
+
+
+# --------------------------------------------------------------------------------------------
+# the big FC layer, with its weight gradient summed over time in one matmul
+
+
+class _GradBank:
+    """Pairs ``(left (B, L), right (B, N))`` whose products ``left^T right`` sum to a weight gradient."""
+
+    def __init__(self):
+        self.left: list[torch.Tensor] = []
+        self.right: list[torch.Tensor] = []
+
+    def gradient(self) -> torch.Tensor | None:
+        if not self.left:
+            return None
+        g = torch.cat(self.left).t() @ torch.cat(self.right)
+        self.left.clear()
+        self.right.clear()
+        return g
+
+
+class _WeightGate(torch.autograd.Function):
+    """Identity on the FC weight for one roll-out; its backward hands over the collected gradient.
+
+    The steps' ``_DeferredLinear`` nodes give it no gradient; they store their (input, output
+    gradient) pairs in the bank instead, and this node (which autograd runs after all of them)
+    forms ``sum_t a_t^T b_t`` as ONE matmul over all time steps, instead of one memory-bound
+    ``(L, V*C)`` product and accumulation per step and layer.
+    """
+
+    @staticmethod
+    def forward(ctx, weight, bank):
+        ctx.set_materialize_grads(False)
+        ctx.bank = bank
+        return weight.view_as(weight)
+
+    @staticmethod
+    def backward(ctx, grad):
+        g = ctx.bank.gradient()
+        if grad is not None:
+            g = grad if g is None else g + grad
+        return g, None
+
+
+class _DeferredLinear(torch.autograd.Function):
+    """``x W^T + b`` (``transpose=False``) or ``x W + b`` (``transpose=True``), W ``(L, N)``;
+    the weight gradient goes to the bank (see ``_WeightGate``)."""
+
+    @staticmethod
+    def forward(ctx, x, weight, bias, bank, transpose):
+        ctx.save_for_backward(x, weight)
+        ctx.bank, ctx.transpose = bank, transpose
+        return torch.addmm(bias, x, weight if transpose else weight.t())
+
+    @staticmethod
+    def backward(ctx, g):
+        x, weight = ctx.saved_tensors
+        if ctx.transpose:  # y = x W: dW = x^T g
+            gx = g @ weight.t()
+            ctx.bank.left.append(x)
+            ctx.bank.right.append(g)
+        else:  # y = x W^T: dW = g^T x
+            gx = g @ weight
+            ctx.bank.left.append(g)
+            ctx.bank.right.append(x)
+        return gx, None, g.sum(0), None, None
+
+
+class _FC:
+    """How a roll-out applies the big FC weight: plainly, or through the gate and bank (training)."""
+
+    def __init__(self, weight: torch.Tensor, deferred: bool):
+        self.bank = _GradBank() if deferred else None
+        self.weight = _WeightGate.apply(weight, self.bank) if deferred else weight
+
+    def encode(self, x, bias):  # (B, N) -> (B, L)
+        if self.bank is None:
+            return F.linear(x, self.weight, bias)
+        return _DeferredLinear.apply(x, self.weight, bias, self.bank, False)
+
+    def decode(self, h, bias):  # (B, L) -> (B, N)
+        if self.bank is None:
+            return torch.addmm(bias, h, self.weight)
+        return _DeferredLinear.apply(h, self.weight, bias, self.bank, True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -186,8 +277,9 @@ class MeshConv(nn.Module):
 class BDLSTM(nn.Module):
     """Encoder (Conv + FC + VAE head), LSTM(s), tied decoder; see the module docstring.
 
-    Parameters are created in a fixed order, so a seed gives the same initial weights on every
-    machine and every rank.
+    Public methods take frames ``(B, V, C)``; the ``_vm`` methods work on vertex-major
+    ``(V, B, C)`` frames, the layout of the roll-out. Parameters are created in a fixed order, so
+    a seed gives the same initial weights on every machine and every rank.
     """
 
     def __init__(self, config: ModelConfig, topology: Topology):
@@ -209,25 +301,45 @@ class BDLSTM(nn.Module):
         self.lstm = nn.LSTM(L, L, config.lstm_layers)
         self.lstm_backward = nn.LSTM(L, L, config.lstm_layers) if config.variant == "std-bd" else None
 
-    # -- the pieces -------------------------------------------------------------------------
+    def _fc_ops(self, deferred: bool = False) -> _FC:
+        return _FC(self.fc.weight, deferred and torch.is_grad_enabled() and self.fc.weight.requires_grad)
 
-    def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Frames ``(B, V, C)`` -> ``(mu, logvar)``, each ``(B, L)``."""
+    # -- the pieces (vertex-major) --------------------------------------------------------------
+
+    def _encode_vm(self, x: torch.Tensor, fc: _FC) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(V, B, C)`` -> ``(mu, logvar)`` ``(B, L)``."""
         for conv in self.convs:
             x = torch.tanh(conv(x))
-        e = self.fc(x.reshape(x.shape[0], -1))
+        flat = x.transpose(0, 1).reshape(x.shape[1], -1)  # (B, V*C), vertex-major flattening
+        e = fc.encode(flat, self.fc.bias)
         return self.fc_mu(e), self.fc_logvar(e)
 
-    def decode(self, h: torch.Tensor) -> torch.Tensor:
-        """LSTM outputs ``(B, L)`` -> frame changes ``dX`` ``(B, V, C)`` (tied weights)."""
+    def _decode_vm(self, h: torch.Tensor, fc: _FC) -> torch.Tensor:
+        """``(B, L)`` -> ``dX`` ``(V, B, C)``."""
         B = h.shape[0]
-        y = F.linear(h, self.fc.weight.t(), self.dec_fc_bias).view(B, self.config.n_vertices, -1)
+        y = fc.decode(h, self.dec_fc_bias).view(B, self.config.n_vertices, -1).transpose(0, 1).contiguous()
         K = len(self.convs)
         for k in range(K):
             y = self.convs[K - 1 - k](y, transpose=True, bias=self.dec_conv_bias[k])
             if k < K - 1:
                 y = torch.tanh(y)
         return y
+
+    def _step_vm(self, state, x, fc: _FC, sample: bool, n_forward):
+        mu, logvar = self._encode_vm(x, fc)
+        z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
+        h, state = self._lstm(z, state, n_forward)
+        return state, x + self._decode_vm(h, fc), mu, logvar
+
+    # -- public, batch-major ----------------------------------------------------------------------
+
+    def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Frames ``(B, V, C)`` -> ``(mu, logvar)``, each ``(B, L)``."""
+        return self._encode_vm(x.transpose(0, 1), self._fc_ops())
+
+    def decode(self, h: torch.Tensor) -> torch.Tensor:
+        """LSTM outputs ``(B, L)`` -> frame changes ``dX`` ``(B, V, C)`` (tied weights)."""
+        return self._decode_vm(h, self._fc_ops()).transpose(0, 1)
 
     def initial_state(self, n_forward: int, n_backward: int = 0, device=None, dtype=torch.float32):
         """``(h, c)``, each ``(K, n_forward + n_backward, L)``: +init for forward rows, -init after."""
@@ -263,10 +375,8 @@ class BDLSTM(nn.Module):
         Returns:
             ``(state', x_next (B, V, C), mu (B, L), logvar (B, L))``.
         """
-        mu, logvar = self.encode(x)
-        z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
-        h, state = self._lstm(z, state, n_forward)
-        return state, x + self.decode(h), mu, logvar
+        state, nxt, mu, logvar = self._step_vm(state, x.transpose(0, 1), self._fc_ops(), sample, n_forward)
+        return state, nxt.transpose(0, 1), mu, logvar
 
     def rollout(self, first: torch.Tensor, steps: int, state, sample: bool = False, n_forward=None):
         """Free-running roll-out from ``first`` ``(B, V, C)``.
@@ -274,17 +384,19 @@ class BDLSTM(nn.Module):
         Returns ``(frames (B, steps + 1, V, C)`` with ``frames[:, 0] = first``, ``mu``, ``logvar``
         ``(steps, B, L)``, final state)``. The time loop is the only Python loop.
         """
-        frames, mus, logvars = [first], [], []
-        x = first
+        fc = self._fc_ops(deferred=True)
+        x = first.transpose(0, 1).contiguous()  # (V, B, C)
+        frames, mus, logvars = [x], [], []
         for _ in range(steps):
-            state, x, mu, logvar = self.step(state, x, sample=sample, n_forward=n_forward)
+            state, x, mu, logvar = self._step_vm(state, x, fc, sample, n_forward)
             frames.append(x)
             mus.append(mu)
             logvars.append(logvar)
+        out = torch.stack(frames).permute(2, 0, 1, 3)  # (n, V, B, C) -> (B, n, V, C)
         if steps:
-            return torch.stack(frames, 1), torch.stack(mus), torch.stack(logvars), state
+            return out, torch.stack(mus), torch.stack(logvars), state
         empty = first.new_zeros(0, first.shape[0], self.config.latent)
-        return first.unsqueeze(1), empty, empty, state
+        return out, empty, empty, state
 
     def forward(self, windows: torch.Tensor, sample: bool = True) -> dict:
         """Both chains over ground-truth windows ``(B, n, V, C)`` in one batched pass.
