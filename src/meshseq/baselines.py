@@ -16,8 +16,6 @@ Completion baseline: ``linear_interpolation`` of ACAP features between two keys 
 from __future__ import annotations
 
 import json
-import math
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +23,7 @@ import torch
 from torch import nn
 
 from meshseq.mesh import Topology
-from meshseq.model import MeshConv, NeighborMean
+from meshseq.model import BDLSTM, ModelConfig
 
 PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
 COMPLETION_METHODS = ("ours", "cma", "linear")
@@ -58,47 +56,23 @@ def linear_interpolation(key_a: np.ndarray, key_b: np.ndarray, n_between: int) -
 # mesh VAE
 
 
-@dataclass
-class VAEConfig:
-    n_vertices: int
-    channels: int = 9
-    conv_layers: int = 3
-    latent: int = 128
-    conv_impl: str = "sparse"
-
-
 class MeshVAE(nn.Module):
-    """A mesh-convolutional VAE on single frames ``(B, V, C)``: the generator's encoder with a tied
-    decoder that outputs the frame itself (not a change)."""
+    """A mesh-convolutional VAE on single frames ``(B, V, C)``: the generator's own encoder
+    (conv + FC + VAE head) and tied decoder, trained to output the frame itself rather than a
+    change. (The wrapped generator's LSTM is unused.)"""
 
-    def __init__(self, config: VAEConfig, topology: Topology):
+    def __init__(self, config: ModelConfig, topology: Topology):
         super().__init__()
         self.config = config
-        C, L, V = config.channels, config.latent, config.n_vertices
-        ring = NeighborMean(topology, config.conv_impl)
-        self.convs = nn.ModuleList(MeshConv(C, C, ring) for _ in range(config.conv_layers))
-        self.fc = nn.Linear(V * C, L)
-        self.fc_mu = nn.Linear(L, L)
-        self.fc_logvar = nn.Linear(L, L)
-        self.dec_fc_bias = nn.Parameter(torch.zeros(V * C))
-        self.dec_conv_bias = nn.ParameterList(nn.Parameter(torch.zeros(C)) for _ in range(config.conv_layers))
+        self.net = BDLSTM(config, topology)
 
     def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(B, V, C)`` -> ``(mu, logvar)`` each ``(B, L)``."""
-        for conv in self.convs:
-            x = torch.tanh(conv(x))
-        e = self.fc(x.reshape(x.shape[0], -1))
-        return self.fc_mu(e), self.fc_logvar(e)
+        return self.net.encode(x)
 
     def decode(self, z: torch.Tensor) -> torch.Tensor:
         """``(B, L)`` -> frames ``(B, V, C)``."""
-        y = torch.nn.functional.linear(z, self.fc.weight.t(), self.dec_fc_bias).view(z.shape[0], self.config.n_vertices, -1)
-        K = len(self.convs)
-        for k in range(K):
-            y = self.convs[K - 1 - k](y, transpose=True, bias=self.dec_conv_bias[k])
-            if k < K - 1:
-                y = torch.tanh(y)
-        return y
+        return self.net.decode(z)
 
 
 def train_vae(frames: np.ndarray, topology: Topology, latent: int = 128, iterations: int = 500,
@@ -108,7 +82,8 @@ def train_vae(frames: np.ndarray, topology: Topology, latent: int = 128, iterati
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     x_all = torch.as_tensor(np.asarray(frames), dtype=torch.float32, device=device)
-    vae = MeshVAE(VAEConfig(n_vertices=x_all.shape[1], channels=x_all.shape[2], latent=latent), topology).to(device)
+    config = ModelConfig(n_vertices=x_all.shape[1], channels=x_all.shape[2], latent=latent, lstm_layers=1, variant="uni")
+    vae = MeshVAE(config, topology).to(device)
     opt = torch.optim.Adam(vae.parameters(), lr=lr)
     for _ in range(iterations):
         x = x_all[torch.as_tensor(rng.integers(0, len(x_all), size=min(batch, len(x_all))), device=device)]
@@ -146,7 +121,7 @@ def save_vae(vae: MeshVAE, folder: str | Path, info: dict) -> None:
     with atomic_output(Path(folder), force=True) as tmp:
         tmp.mkdir()
         save_file({k: v.detach().cpu().contiguous() for k, v in vae.state_dict().items()}, str(tmp / "vae.safetensors"))
-        (tmp / "vae.json").write_text(json.dumps({"config": asdict(vae.config), **info}, indent=2))
+        (tmp / "vae.json").write_text(json.dumps({"config": vae.config.to_dict(), **info}, indent=2))
 
 
 def load_vae(folder: str | Path, topology: Topology, device="cpu") -> tuple[MeshVAE, dict]:
@@ -155,7 +130,7 @@ def load_vae(folder: str | Path, topology: Topology, device="cpu") -> tuple[Mesh
 
     folder = Path(folder)
     meta = json.loads((folder / "vae.json").read_text())
-    vae = MeshVAE(VAEConfig(**meta["config"]), topology)
+    vae = MeshVAE(ModelConfig.from_dict(meta["config"]), topology)
     vae.load_state_dict(load_file(str(folder / "vae.safetensors")))
     return vae.to(device).eval(), meta
 
@@ -172,7 +147,3 @@ def pairwise_diversity(samples: np.ndarray) -> float:
         total += float(d.mean(axis=tuple(range(1, d.ndim))).sum())
         count += k - 1 - i
     return total / count if count else 0.0
-
-
-def _unused() -> None:  # keep math imported for type checkers of older numpy
-    return math.pi and None

@@ -1,0 +1,178 @@
+"""Prediction, completion, baselines and evaluation with a small trained model."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from meshseq import baselines
+from meshseq.cli import main
+from meshseq.data.synthetic import twisting_limb
+from meshseq.io import load_sequence, save_sequence
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A tiny model trained briefly on a generated limb: (run folder, data path, sequence)."""
+    from meshseq.train import TrainConfig, load_training_data, train
+
+    root = tmp_path_factory.mktemp("synth")
+    data = root / "limb.npz"
+    save_sequence(twisting_limb(frames=72, rings=12, segments=8), data)
+    run = root / "run"
+    train(load_training_data([str(data)]),
+          run, TrainConfig(iterations=40, window=12, batch=4, eval_every=0, checkpoint_every=0, log_every=0),
+          model_options={"latent": 16, "lstm_layers": 2}, device="cpu", progress=False, log=lambda m: None)
+    return run, data, load_sequence(data)
+
+
+@pytest.fixture(scope="module")
+def model(trained):
+    from meshseq.api import load
+
+    return load(trained[0])
+
+
+def test_long_prediction_stays_finite_and_within_the_data_range(model, trained):
+    from meshseq.synthesize import predict
+
+    x = model.features(trained[2].vertices[:3])
+    out = predict(model, x, 500)
+    assert out.shape == (500,) + x.shape[1:]
+    assert np.isfinite(out).all() and np.abs(out).max() <= 1.0
+    # without the bound the same roll-out is still finite (the bound only clips)
+    free = predict(model, x, 50, bound=None)
+    assert np.isfinite(free).all()
+    assert np.allclose(np.clip(free[:1], -1, 1), out[:1])
+
+
+def test_warm_up_uses_every_given_frame(model, trained):
+    from meshseq.synthesize import predict
+
+    x = model.features(trained[2].vertices[:4])
+    one = predict(model, x[3:], 5)
+    four = predict(model, x, 5)
+    assert not np.allclose(one, four)  # the state took in frames 0..2
+    changed = x.copy()
+    changed[0] += 0.2
+    assert not np.allclose(predict(model, changed, 5), four)
+
+
+def test_completion_passes_exactly_through_keyframes_and_samples_differ(model, trained):
+    from meshseq.synthesize import assemble_vertices, complete
+
+    v = trained[2].vertices
+    keys = model.features(v[[10, 24]])
+    comp = complete(model, keys[0], keys[1], 13)
+    assert comp.frames.shape == (1, 15) + keys.shape[1:]
+    assert np.array_equal(comp.frames[0, 0], keys[0]) and np.array_equal(comp.frames[0, -1], keys[1])
+    assert 1 <= comp.stitch[0] <= 13
+    verts = assemble_vertices(model, comp.frames[0], {0: v[10], 14: v[24]})
+    assert np.array_equal(verts[0], v[10]) and np.array_equal(verts[-1], v[24])
+    # the frames next to the keys continue smoothly (no jump from exact keys to reconstructions)
+    step = np.linalg.norm(np.diff(verts, axis=0), axis=-1).mean(axis=-1)
+    assert step.max() < 5 * np.linalg.norm(np.diff(v[10:25], axis=0), axis=-1).mean(axis=-1).max()
+    many = complete(model, keys[0], keys[1], 13, samples=3, seed=5)
+    assert many.frames.shape[0] == 3
+    assert baselines.pairwise_diversity(many.frames[:, 1:-1]) > 1e-4
+    assert not np.allclose(many.frames[0], many.frames[1])
+    again = complete(model, keys[0], keys[1], 13, samples=3, seed=5)
+    assert np.array_equal(again.frames, many.frames)  # a seed reproduces
+
+
+def test_cma_baseline_is_bounded_in_evaluations_and_time(model, trained):
+    from meshseq.synthesize import complete_cma
+
+    keys = model.features(trained[2].vertices[[10, 20]])
+    t0 = time.monotonic()
+    comp = complete_cma(model, keys[0], keys[1], 9, max_evals=30, max_seconds=10)
+    assert time.monotonic() - t0 < 10
+    assert comp.frames.shape == (1, 11) + keys.shape[1:]
+    assert np.array_equal(comp.frames[0, -1], keys[1])
+    t0 = time.monotonic()
+    complete_cma(model, keys[0], keys[1], 9, max_evals=10 ** 6, max_seconds=1.0)
+    assert time.monotonic() - t0 < 3.0
+
+
+def test_baselines():
+    given = np.random.default_rng(0).normal(size=(2, 3, 5, 9))
+    zv = baselines.zero_velocity(given, 4)
+    assert zv.shape == (2, 4, 5, 9) and np.array_equal(zv[:, 3], given[:, -1])
+    lin = baselines.linear_acap(given, 4)
+    assert np.allclose(lin[:, 1] - lin[:, 0], given[:, -1] - given[:, -2])
+    assert np.allclose(lin[:, 0], 2 * given[:, -1] - given[:, -2])
+    assert np.array_equal(baselines.linear_acap(given[:, :1], 4), baselines.zero_velocity(given[:, :1], 4))
+    li = baselines.linear_interpolation(given[0, 0], given[0, 1], 3)
+    assert li.shape == (5, 5, 9) and np.allclose(li[2], (given[0, 0] + given[0, 1]) / 2)
+
+
+def test_evaluate_command_writes_the_tables_json(trained, tmp_path, capsys):
+    run, data, _ = trained
+    out = tmp_path / "eval.json"
+    plots = tmp_path / "plots"
+    assert main(["evaluate", str(run), str(data), "--json", str(out), "--plots", str(plots), "--horizons", "2,5",
+                 "--given", "1,2", "--vae-iterations", "20", "--cma-evals", "20", "--cma-seconds", "2",
+                 "--gaps", "3", "--samples", "2", "--curve-frames", "10"]) == 0
+    r = json.loads(out.read_text())
+    assert r["units"] == "x1e-4" and r["range"] == [58, 72]
+    for key in ("errors", "errors_aligned"):
+        assert set(r[key]) == {"ours", "zero_velocity", "linear_acap", "vae_latent"}
+        for per_u in r[key].values():
+            assert set(per_u) == {"u1", "u2"} and set(per_u["u1"]) == {"2", "5"}
+            assert all(v > 0 for v in per_u["u1"].values())
+    # rigid alignment can only lower the error
+    assert r["errors_aligned"]["ours"]["u1"]["5"] <= r["errors"]["ours"]["u1"]["5"] + 1e-9
+    assert len(r["feature_change"]["ours"]) == 10 and r["feature_change"]["ground_truth"] > 0
+    assert set(r["completion"]["3"]) >= {"ours", "cma", "linear", "diversity"}
+    assert any("Tan et al" in n for n in r["notes"])
+    assert sorted(p.name for p in plots.iterdir()) == ["error_u1.png", "error_u2.png", "feature_change.png"]
+
+
+def test_predict_and_complete_commands(trained, tmp_path, capsys):
+    run, data, seq = trained
+    out = tmp_path / "pred.npz"
+    assert main(["predict", str(run), str(data), "--start", "5", "--given", "3", "--frames", "20", "-o", str(out)]) == 0
+    p = load_sequence(out)
+    assert p.n_frames == 23 and np.array_equal(p.vertices[:3], seq.vertices[5:8])
+    assert np.array_equal(p.faces, seq.faces)
+    out = tmp_path / "comp"
+    assert main(["complete", str(run), str(data), "--keyframes", "4,15,30", "-o", str(out)]) == 0
+    c = load_sequence(out)
+    assert c.n_frames == 27
+    for i, k in ((0, 4), (11, 15), (26, 30)):
+        assert np.allclose(c.vertices[i], seq.vertices[k], atol=1e-6)  # OBJ text: 9 digits
+    many = tmp_path / "many"
+    assert main(["complete", str(run), str(data), "--keyframes", "4,15", "--samples", "3", "-o", str(many)]) == 0
+    assert sorted(p.name for p in many.iterdir()) == ["diversity.json", "sample_00.npz", "sample_01.npz", "sample_02.npz"]
+    assert json.loads((many / "diversity.json").read_text())["mean_pairwise_vertex_distance"] > 0
+    for method in ("cma", "linear"):
+        o = tmp_path / f"{method}.npz"
+        assert main(["complete", str(run), str(data), "--keyframes", "4,12", "--method", method,
+                     "--cma-evals", "20", "-o", str(o)]) == 0
+        assert np.array_equal(load_sequence(o).vertices[[0, -1]], seq.vertices[[4, 12]])
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["complete", "{run}", "{data}", "--keyframes", "15,4"], "strictly increasing"),
+    (["complete", "{run}", "{data}", "--keyframes", "4,99"], "has frames 0..71"),
+    (["complete", "{run}", "{data}", "--keyframes", "4"], "at least two keyframes"),
+    (["predict", "{run}", "{data}", "--start", "70", "--given", "5"], "--given 5: only 2 frames"),
+    (["predict", "{run}", "{other}"], "another connectivity"),
+    (["evaluate", "{run}", "{data}", "--range", "60:50"], "--range 60:50"),
+])
+def test_bad_input_is_one_line_and_writes_nothing(argv, fragment, trained, tmp_path, capsys):
+    run, data, _ = trained
+    other = tmp_path / "other.npz"
+    save_sequence(twisting_limb(frames=30, rings=10, segments=8), other)
+    out_dir = tmp_path / "outputs"
+    out_dir.mkdir()
+    argv = [a.format(run=run, data=data, other=other) for a in argv]
+    if argv[0] != "evaluate":
+        argv += ["-o", str(out_dir / "x.npz")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("meshseq: error: ") and err.count("\n") == 1 and fragment in err, err
+    assert list(out_dir.iterdir()) == []
