@@ -293,10 +293,17 @@ def cmd_evaluate(args) -> int:
     result = {"dataset": seq.name, "source": seq.source, "range": [lo, hi], "units": "x1e-4",
               "iteration": model.iteration, "variant": model.config.variant,
               "errors": {}, "errors_aligned": {}, "curves": {}, "notes": []}
+    stride = int(model.meta.get("train", {}).get("stride", 1))
+    vertices = seq.vertices
+    if stride > 1:  # the model steps `stride` frames at a time: evaluate on every stride-th frame
+        vertices, feats = vertices[lo:hi:stride], feats[lo:hi:stride]
+        lo, hi = 0, len(vertices)
+        result["stride"] = stride
+        result["notes"].append(f"the run was trained with stride {stride}: one predicted step = {stride} frames")
     if vae is not None:
         result["notes"].append(baselines.VAE_NOTE)
     for u in given:
-        errs = evaluate.prediction_errors(model, seq.vertices, feats, lo, hi, u, horizons, methods, vae=vae)
+        errs = evaluate.prediction_errors(model, vertices, feats, lo, hi, u, horizons, methods, vae=vae)
         for m, r in errs.items():
             result["errors"].setdefault(m, {})[f"u{u}"] = r["centroid"]
             result["errors_aligned"].setdefault(m, {})[f"u{u}"] = r["rigid"]
@@ -308,7 +315,7 @@ def cmd_evaluate(args) -> int:
                                                        [m for m in methods if m != "zero_velocity"], vae)
     if gaps:
         result["completion"] = evaluate.completion_errors(
-            model, seq.vertices, feats, lo, hi, gaps, ["ours", "cma", "linear"], samples=args.samples,
+            model, vertices, feats, lo, hi, gaps, ["ours", "cma", "linear"], samples=args.samples,
             cma_evals=args.cma_evals, cma_seconds=args.cma_seconds)
     _print_tables(result, horizons)
     if args.json_out:
