@@ -158,8 +158,9 @@ class BodyModel:
     Attributes:
         faces: ``(F, 3)`` int64 faces of the skin (13,348 vertices, 26,692 triangles).
         keep: ``(V,)`` indices of the skin's vertices among Anny's.
-        soles: ``{"L": idx, "R": idx}`` skin vertices of each sole (the lowest 1.5 cm of the
-            vertices skinned mainly to that foot and its toes, in the rest pose).
+        soles: ``{"L": idx, "R": idx}`` skin vertices of each sole (the lowest 1.5 cm, in the
+            rest pose, of the vertices skinned only to that foot and its toes, which move
+            rigidly with the foot).
         rest: ``(V, 3)`` the default body's rest pose (the template is decimated from it).
     """
 
@@ -185,15 +186,15 @@ class BodyModel:
         self.faces = f[(f >= 0).all(axis=1)]
         self.keep = keep
         self.rest = full_rest[keep]
-        # Sole vertices: mainly skinned to a foot or its toes, and near the bottom of that foot.
+        # Sole vertices: skinned (almost) only to a foot and its toes, so they move rigidly
+        # with the foot, and near the bottom of that foot.
         w = model.vertex_bone_weights.detach().cpu().numpy()[keep]
         bi = model.vertex_bone_indices.detach().cpu().numpy()[keep]
-        dominant = np.take_along_axis(bi, np.argmax(w, axis=1)[:, None], axis=1)[:, 0]
         self.soles = {}
         for side in ("L", "R"):
             bones = [i for b, i in self.bone_index.items() if b.endswith("." + side)
                      and (b.startswith("foot") or b.startswith("toe"))]
-            foot = np.flatnonzero(np.isin(dominant, bones))
+            foot = np.flatnonzero((w * np.isin(bi, bones)).sum(axis=1) > 0.98)
             z = self.rest[foot, 2]
             self.soles[side] = foot[z < z.min() + 0.015]
         heads = out["bone_heads"][0]
@@ -252,8 +253,8 @@ def ground(vertices: np.ndarray, soles: dict[str, np.ndarray], hop: np.ndarray |
     The contact foot is the lower one (a smooth switch, :data:`CONTACT_SOFTNESS` wide, between
     the two); ``z`` puts its lowest sole point on the floor, plus ``hop (T,)``. Horizontally,
     without ``contact`` the feet's midpoint stays where it is at frame 0 (centred on the
-    origin); with ``contact (T,)`` (the weight of the left foot as the stance foot, for walking)
-    each step moves the body by the opposite of the stance foot's motion, so the stance foot
+    origin); with ``contact (T,)`` (walking: the weight of the left foot as the stance foot)
+    each frame moves the body by the opposite of the stance foot's motion, so the stance foot
     does not slide and the body walks forward.
     """
     v = np.asarray(vertices, dtype=np.float64)

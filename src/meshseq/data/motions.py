@@ -67,8 +67,8 @@ class Motion:
         hop: ``(T,)`` height in metres added above the floor contact.
         travels: the body moves so that the stance foot stays fixed (walk) instead of keeping
             both feet where they are.
-        contact: ``(T,)`` weight in [0, 1] of the left foot as the stance foot (travelling
-            motions; the right foot has ``1 - contact``).
+        contact: for a travelling motion, ``(T,)`` weight in [0, 1] of the left foot as the
+            stance foot (the right one has the rest).
     """
 
     rotations: dict[str, np.ndarray]
@@ -213,6 +213,78 @@ def _spine(n: int, pitch=0.0, yaw=0.0, roll=0.0, bones=("spine04", "spine03", "s
 # ----------------------------------------------------------------------------------------------
 # The motions
 
+#: Walk: fraction of the gait cycle a foot is on the floor, half-stride (metres, per unit of
+#: amplitude) and swing-foot lift (metres).
+WALK_STANCE = 0.6
+WALK_HALF_STRIDE = 0.27
+WALK_LIFT = 0.07
+
+
+def _hermite(s, p0, m0, p1, m1):
+    """Cubic Hermite curve at ``s`` in [0, 1] from ``p0`` (slope ``m0``) to ``p1`` (slope ``m1``)."""
+    s2, s3 = s * s, s * s * s
+    return (2 * s3 - 3 * s2 + 1) * p0 + (s3 - 2 * s2 + s) * m0 + (-2 * s3 + 3 * s2) * p1 + (s3 - s2) * m1
+
+
+def walk_ankle_path(c: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ankle offset from the hip along the walking direction ``(T,)`` and its lift ``(T,)`` at
+    gait-cycle fraction ``c`` in [0, 1) (heel strike at 0): on the floor for ``c < WALK_STANCE``
+    moving back uniformly from ``+half`` to ``-half``; then swung forward (C1 cubic matching the
+    stance speed at both ends) with a ``sin^2`` lift."""
+    beta = WALK_STANCE
+    speed = -2.0 * half / beta
+    stance = c < beta
+    s = np.clip((c - beta) / (1.0 - beta), 0.0, 1.0)
+    f = np.where(stance, half + speed * c, _hermite(s, -half, speed * (1 - beta), half, speed * (1 - beta)))
+    lift = np.where(stance, 0.0, WALK_LIFT * np.sin(np.pi * s) ** 2)
+    return f, lift
+
+
+def walk_legs(phi: np.ndarray, rig: "RigAxes", amplitude: float = 1.0):
+    """Hip and knee flexion (degrees, ``(2, T)`` for left and right) that put the ankles on
+    :func:`walk_ankle_path`, and the hip height ``(T,)`` above the stance ankles' level.
+
+    The hip rides as high as the stance legs allow (98 % of full reach), smoothed to a few
+    harmonics of the gait cycle and lowered so that it never asks for more than that.
+    """
+    thigh, shin = rig.thigh, rig.shin  # (forward, down) rest vectors of the left leg
+    lt, ls = float(np.hypot(*thigh)), float(np.hypot(*shin))
+    rest_t = np.arctan2(thigh[0], thigh[1])
+    rest_s = np.arctan2(shin[0], shin[1])
+    half = WALK_HALF_STRIDE * amplitude
+
+    def height_limit(c):
+        f, _ = walk_ankle_path(c, half)
+        return np.where(c < WALK_STANCE, 0.98 * np.sqrt(np.maximum((lt + ls) ** 2 - f ** 2, 0.0)), np.inf)
+
+    # The hip height over one cycle (left leg's cycle fraction), as a smooth periodic curve.
+    grid = np.arange(512) / 512.0
+    limit = np.minimum(height_limit(grid), height_limit(np.mod(grid + 0.5, 1.0)))
+    spec = np.fft.rfft(limit)
+    spec[5:] = 0.0
+    smooth = np.fft.irfft(spec, n=grid.size)
+    offset = float(np.max(smooth - limit))
+    coeffs = spec[:5] / grid.size
+    coeffs[0] -= offset
+
+    def hip_height(c):
+        k = np.arange(5)
+        terms = coeffs[None, :] * np.exp(2j * np.pi * k[None, :] * c[:, None])
+        return terms[:, 0].real + 2.0 * terms[:, 1:].real.sum(axis=1)
+
+    c_left = np.mod((phi - np.pi / 2) / (2 * np.pi), 1.0)
+    h = hip_height(c_left)
+    hips, knees = [], []
+    for c in (c_left, np.mod(c_left + 0.5, 1.0)):
+        f, lift = walk_ankle_path(c, half)
+        down = h - lift
+        d = np.minimum(np.hypot(f, down), 0.9999 * (lt + ls))
+        knee = np.pi - np.arccos(np.clip((lt ** 2 + ls ** 2 - d ** 2) / (2 * lt * ls), -1.0, 1.0))
+        thigh_pitch = np.arctan2(f, down) + np.arccos(np.clip((lt ** 2 + d ** 2 - ls ** 2) / (2 * lt * d), -1.0, 1.0))
+        hips.append(np.degrees(thigh_pitch - rest_t))
+        knees.append(np.degrees(knee - (rest_t - rest_s)))
+    return np.array(hips), np.array(knees), h
+
 
 def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionParams | None = None,
                   rig: "RigAxes | None" = None) -> Motion:
@@ -237,25 +309,24 @@ def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionPar
     travels = False
 
     if key == "walk":
+        # Leg inverse kinematics in the sagittal plane: each ankle follows a planned path
+        # relative to the hip (stance: straight back along the floor at the walking speed;
+        # swing: forward with a lift), so the body walks without the stance foot sliding.
         travels = True
-        for side, ph in ((left, phi), (right, phi + np.pi)):
-            # Hip flexes forward through the swing (sin rising), knee bends early in the swing
-            # and a little after heel strike, the foot stays nearly level.
-            hip = A * 24.0 * np.sin(ph)
-            # Knee: peak flexion (about 55 deg) early in the swing, straight at heel strike (ph = pi/2),
-            # a small loading flexion just after it.
-            knee = A * (52.0 * np.exp(2.0 * (np.cos(ph + 0.12) - 1.0))
-                        + 12.0 * np.exp(3.0 * (np.cos(ph - np.pi / 2 - 0.9) - 1.0)))
-            side.hip(flex=hip, abduct=2.0)
-            side.knee(flex=5.0 + knee)
-            side.flat_foot(extra_pitch=A * 8.0 * np.sin(ph + 0.6))
+        hip_flex, knee_flex, _ = walk_legs(phi, rig, A)
+        # The stance foot, for the body's forward motion: the left one while its ankle is on the
+        # floor (gait-cycle fraction below WALK_STANCE), shared smoothly in double support.
+        c_left = np.mod((phi - np.pi / 2) / (2 * np.pi), 1.0)
+        g = [np.where(c < WALK_STANCE, np.sin(np.pi * c / WALK_STANCE) ** 2, 0.0)
+             for c in (c_left, np.mod(c_left + 0.5, 1.0))]
+        contact = g[0] / (g[0] + g[1])
+        for i, (side, ph) in enumerate(((left, phi), (right, phi + np.pi))):
+            side.hip(flex=hip_flex[i])
+            side.knee(flex=knee_flex[i])
+            side.flat_foot()
             # The arm swings against the leg of the same side.
             side.shoulder(abduct=-28.0, flex=A * 18.0 * np.sin(ph + np.pi))
             side.elbow(flex=15.0 + A * 15.0 * (0.5 + 0.5 * np.sin(ph + np.pi)))
-        # The stance foot: the left one from heel strike (phi = pi/2) to toe-off (60 % later).
-        stance_l = np.exp(4.0 * np.cos(phi - np.pi / 2 - 0.6 * np.pi))
-        stance_r = np.exp(4.0 * np.cos(phi + np.pi - np.pi / 2 - 0.6 * np.pi))
-        contact = stance_l / (stance_l + stance_r)
         central.update(_spine(n_frames, pitch=3.0, yaw=A * 6.0 * np.sin(phi + np.pi)))
         central["spine05"] = _axis_rotation(_Z, A * 4.0 * np.sin(phi))
 
@@ -362,25 +433,31 @@ class RigAxes:
         elbow_rest: the elbow's flexion in the rest A-pose (degrees; about 44 for Anny).
         knuckle_axis: ``(3,)`` along the knuckles (index to little finger base); curling the
             fingers about it closes the hand.
+        thigh, shin: ``(2,)`` hip-to-knee and knee-to-ankle in the sagittal plane, as
+            (forward, down) components (metres).
     """
 
     elbow_axis: np.ndarray
     elbow_rest: float
     knuckle_axis: np.ndarray
+    thigh: np.ndarray = None
+    shin: np.ndarray = None
 
     @staticmethod
     def from_heads(heads: dict[str, np.ndarray]) -> "RigAxes":
-        """From rest bone-head positions ``(3,)`` of ``upperarm01.L``, ``lowerarm01.L``,
-        ``wrist.L``, ``finger2-1.L`` and ``finger5-1.L``."""
+        """From rest bone-head positions ``(3,)`` of the bones in :data:`RIG_BONES`."""
         h = {k: np.asarray(v, dtype=np.float64) for k, v in heads.items()}
         arm = h["lowerarm01.L"] - h["upperarm01.L"]
         fore = h["wrist.L"] - h["lowerarm01.L"]
         axis = np.cross(arm / np.linalg.norm(arm), np.array([0.0, -1.0, 0.0]))
         cos = arm @ fore / (np.linalg.norm(arm) * np.linalg.norm(fore))
         knuckles = h["finger2-1.L"] - h["finger5-1.L"]
+        thigh = h["lowerleg01.L"] - h["upperleg01.L"]
+        shin = h["foot.L"] - h["lowerleg01.L"]
         return RigAxes(elbow_axis=axis / np.linalg.norm(axis),
                        elbow_rest=float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))),
-                       knuckle_axis=knuckles / np.linalg.norm(knuckles))
+                       knuckle_axis=knuckles / np.linalg.norm(knuckles),
+                       thigh=np.array([-thigh[1], -thigh[2]]), shin=np.array([-shin[1], -shin[2]]))
 
     @staticmethod
     def default() -> "RigAxes":
@@ -392,7 +469,8 @@ class RigAxes:
 DEFAULT_HEADS = {
     "upperarm01.L": (0.162, -0.017, 0.467), "lowerarm01.L": (0.329, -0.021, 0.279),
     "wrist.L": (0.446, -0.179, 0.164), "finger2-1.L": (0.473, -0.273, 0.125),
-    "finger5-1.L": (0.497, -0.220, 0.098),
+    "finger5-1.L": (0.497, -0.220, 0.098), "upperleg01.L": (0.102, -0.008, 0.039),
+    "lowerleg01.L": (0.135, -0.040, -0.350), "foot.L": (0.177, -0.004, -0.749),
 }
 #: The bones :meth:`RigAxes.from_heads` reads.
 RIG_BONES = tuple(DEFAULT_HEADS)
