@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/meshseq demo
+	$(BIN)/meshseq demo --force
 
 test: $(STAMP)
 	tools/install_test_deps.sh

@@ -88,7 +88,7 @@ def test_features_writes_npz_and_refuses_to_overwrite(limb_npz, tmp_path, capsys
     (["info", "/no/such/dir"], "/no/such/dir: path does not exist"),
     (["roundtrip", "{data}", "--reference-frame", "99"], "--reference-frame 99 is out of range"),
     (["features", "{data}", "-o", "{tmp}/out.txt"], "must end in .npz"),
-    (["demo", "--frames", "3"], "--frames 3"),
+    (["demo", "--quick", "--frames", "3"], "--frames 3"),
 ])
 def test_bad_input_gives_one_line_error_and_writes_nothing(argv, fragment, limb_npz, tmp_path, capsys):
     out_dir = tmp_path / "outputs"
@@ -100,9 +100,9 @@ def test_bad_input_gives_one_line_error_and_writes_nothing(argv, fragment, limb_
     assert list(out_dir.iterdir()) == []
 
 
-def test_console_script_runs_the_demo():
+def test_console_script_runs_the_quick_demo():
     env = dict(os.environ, COLUMNS="160")
-    res = subprocess.run([sys.executable, "-m", "meshseq", "demo", "--frames", "24"],
+    res = subprocess.run([sys.executable, "-m", "meshseq", "demo", "--quick", "--frames", "24"],
                          capture_output=True, text=True, timeout=300, env=env)
     assert res.returncode == 0, res.stderr
     assert "exact" in res.stdout and "least squares" in res.stdout
