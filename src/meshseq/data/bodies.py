@@ -215,6 +215,11 @@ class BodyModel:
         return {"vertices": out["vertices"].detach().cpu().numpy().astype(np.float64),
                 "bone_heads": out["bone_poses"][:, :, :3, 3].detach().cpu().numpy().astype(np.float64)}
 
+    def rig_for(self, phenotype: dict | None) -> RigAxes:
+        """Hinge axes and leg segments of the rest skeleton of the body ``phenotype``."""
+        heads = self._forward(phenotype, {})["bone_heads"][0]
+        return RigAxes.from_heads({b: heads[self.bone_index[b]] for b in RIG_BONES})
+
     def pose(self, phenotype: dict, rotations: dict[str, np.ndarray], n_frames: int) -> np.ndarray:
         """Skin vertices ``(T, V, 3)`` of the body ``phenotype`` posed by ``rotations`` (bone ->
         ``(T, 3, 3)`` local-ref deltas), before grounding."""
@@ -375,7 +380,7 @@ def generate(subject: Subject, motion: str, frames: int, *, params: MotionParams
     if frames < 2:
         raise MeshseqError(f"--frames {frames}: need at least 2 frames")
     body = body_model()
-    m = motion_curves(key, frames, fps=fps, params=params, rig=body.rig)
+    m = motion_curves(key, frames, fps=fps, params=params, rig=body.rig_for(subject.phenotype))
     v = body.pose(subject.phenotype, m.rotations, frames)
     v = ground(v, body.soles, hop=m.hop, contact=m.contact if m.travels else None)
     faces = body.faces

@@ -143,8 +143,7 @@ class _Side:
         self.n = n
         self.rig = rig
         self.rot: dict[str, np.ndarray] = {}
-        self._leg_pitch = np.zeros(n)
-        self._leg_roll = np.zeros(n)
+        self._leg = np.broadcast_to(np.eye(3), (n, 3, 3))  # hip @ knee rotations so far
 
     def _apply(self, bone: str, R: np.ndarray) -> None:
         prev = self.rot.get(bone)
@@ -155,21 +154,21 @@ class _Side:
 
     def hip(self, flex=0.0, abduct=0.0) -> None:
         flex, abduct = self._angles(flex), self._angles(abduct)
-        self._apply("upperleg01.L", _axis_rotation(_Y, -abduct))
-        self._apply("upperleg01.L", _axis_rotation(_X, -flex))
-        self._leg_pitch = self._leg_pitch - flex
-        self._leg_roll = self._leg_roll - abduct
+        R = _axis_rotation(_X, -flex) @ _axis_rotation(_Y, -abduct)
+        self._apply("upperleg01.L", R)
+        self._leg = self._leg @ R
 
     def knee(self, flex=0.0) -> None:
-        flex = self._angles(flex)
-        self._apply("lowerleg01.L", _axis_rotation(_X, flex))
-        self._leg_pitch = self._leg_pitch + flex
+        R = _axis_rotation(_X, self._angles(flex))
+        self._apply("lowerleg01.L", R)
+        self._leg = self._leg @ R
 
-    def flat_foot(self, extra_pitch=0.0, body_pitch=0.0) -> None:
-        """Ankle angles that undo the leg's pitch and roll so the sole is level (plus ``extra_pitch``)."""
-        pitch = -(self._leg_pitch + self._angles(body_pitch)) + self._angles(extra_pitch)
-        self._apply("foot.L", _axis_rotation(_Y, -self._leg_roll))
-        self._apply("foot.L", _axis_rotation(_X, pitch))
+    def flat_foot(self, extra_pitch=0.0, body: np.ndarray | None = None) -> None:
+        """The ankle rotation that undoes the rotations above the foot (``body`` ``(T, 3, 3)``: the
+        root's, then the hip's and knee's so far) so the sole stays level, then tilts it by
+        ``extra_pitch`` (> 0 lifts the toes). Call it after ``hip`` and ``knee``."""
+        chain = self._leg if body is None else body @ self._leg
+        self._apply("foot.L", _axis_rotation(_X, self._angles(extra_pitch)) @ np.swapaxes(chain, -1, -2))
 
     def shoulder(self, abduct=0.0, flex=0.0, adduct_h=0.0) -> None:
         abduct, flex, adduct_h = self._angles(abduct), self._angles(flex), self._angles(adduct_h)
@@ -213,10 +212,10 @@ def _spine(n: int, pitch=0.0, yaw=0.0, roll=0.0, bones=("spine04", "spine03", "s
 # ----------------------------------------------------------------------------------------------
 # The motions
 
-#: Walk: fraction of the gait cycle a foot is on the floor, half-stride (metres, per unit of
-#: amplitude) and swing-foot lift (metres).
+#: Walk: fraction of the gait cycle a foot is on the floor, half-stride (a fraction of the leg
+#: length, per unit of amplitude) and swing-foot lift (metres).
 WALK_STANCE = 0.6
-WALK_HALF_STRIDE = 0.27
+WALK_HALF_STRIDE = 0.33
 WALK_LIFT = 0.07
 
 
@@ -251,7 +250,7 @@ def walk_legs(phi: np.ndarray, rig: "RigAxes", amplitude: float = 1.0):
     lt, ls = float(np.hypot(*thigh)), float(np.hypot(*shin))
     rest_t = np.arctan2(thigh[0], thigh[1])
     rest_s = np.arctan2(shin[0], shin[1])
-    half = WALK_HALF_STRIDE * amplitude
+    half = WALK_HALF_STRIDE * amplitude * (lt + ls)
 
     def height_limit(c):
         f, _ = walk_ankle_path(c, half)
@@ -379,9 +378,9 @@ def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionPar
         pelvis = 20.0 * s
         central["root"] = _axis_rotation(_X, pelvis)
         for side in (left, right):
-            side.hip(flex=pelvis + 85.0 * s, abduct=6.0 + 6.0 * s)
+            side.hip(flex=pelvis + 85.0 * s)
             side.knee(flex=110.0 * s)
-            side.flat_foot(body_pitch=pelvis)
+            side.flat_foot(body=central["root"])
             side.shoulder(abduct=-28.0 + 18.0 * s, flex=85.0 * s)
             side.elbow(flex=10.0)
         central.update(_spine(n_frames, pitch=25.0 * s))
@@ -411,7 +410,7 @@ def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionPar
         for side in (left, right):
             side.hip(flex=body)
             side.knee(flex=8.0 * s)
-            side.flat_foot(body_pitch=body)
+            side.flat_foot(body=central["root"])
             side.shoulder(abduct=-30.0 + 8.0 * s, flex=35.0 * s)
             side.elbow(flex=10.0)
         central.update(_spine(n_frames, pitch=40.0 * s))
