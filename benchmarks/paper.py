@@ -68,23 +68,28 @@ def _row(values: dict, keys) -> str:
     return " | ".join(f"{values[u][h]:.1f}" for u, h in keys)
 
 
-def write_markdown(results: dict, runs: dict, args, path: Path) -> None:
+def write_markdown(summaries: dict, device: str, path: Path) -> None:
+    """docs/results.md from ``{data set: summary}`` (see ``main``: results, runs, config, argv)."""
     keys = [(u, h) for u in ("u1", "u3") for h in ("5", "10", "15")]
     head = " | ".join(f"{u[1]} given, h={h}" for u, h in keys)
     lines = [
         "# Results: the paper's tables on this repository's data",
         "",
-        f"Made by `python benchmarks/paper.py {' '.join(args.argv)}` on {platform.node() or 'this machine'} "
-        f"({platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
-        f"device {args.device}).",
-        f"Training: {args.iterations} iterations of {args.batch} windows x {args.window} frames "
-        f"(stride {args.stride}, latent {args.latent}); the paper trains 7000. Errors: mean per-vertex "
-        "distance in the data's units x 1e-4 on the held-out last 20% of each sequence, averaged over "
-        "every start with enough frames; translation removed (centroids).",
+        f"Made by `benchmarks/paper.py` on {platform.node() or 'this machine'} ({platform.machine()}, "
+        f"{os.cpu_count()} cores, no GPU used: device {device}, torch {torch.__version__}). The paper trains "
+        "7000 iterations of 8 windows x 32 frames (about 8 hours on a Tesla K40c); the runs here are far "
+        "shorter (CPU), as each section says. Errors: mean per-vertex distance in the data's units x 1e-4 on "
+        "the held-out end of each sequence, averaged over every start with enough frames; translation "
+        "removed (centroids), and in the second table also the best rotation.",
         "",
     ]
-    for name, per_variant in results.items():
-        lines += [f"## {name}", ""]
+    for name, summ in summaries.items():
+        per_variant, runs, cfg = summ["results"], summ["runs"], summ["config"]
+        its = ", ".join(f"{v} {r['iteration']}" for v, r in per_variant.items())
+        lines += [f"## {name}", "",
+                  f"Command: `python benchmarks/paper.py {' '.join(summ['argv'])}`. Iterations: {its}; "
+                  f"{cfg['batch']} windows x {cfg['window']} frames, stride {cfg['stride']}, latent {cfg['latent']}; "
+                  f"held-out frames {per_variant[next(iter(per_variant))]['range']}.", ""]
         bd = per_variant.get("bd")
         if bd:
             lines += ["Table 2 (methods; ours = shared-weight BD-LSTM):", "",
@@ -99,7 +104,7 @@ def write_markdown(results: dict, runs: dict, args, path: Path) -> None:
         lines += ["Table 1 (ablations, ours):", "", f"| variant | {head} | train s |",
                   "|---" * (len(keys) + 2) + "|"]
         for variant, r in per_variant.items():
-            lines.append(f"| {variant} | {_row(r['errors']['ours'], keys)} | {runs[name][variant]['seconds']:.0f} |")
+            lines.append(f"| {variant} | {_row(r['errors']['ours'], keys)} | {runs[variant]['seconds']:.0f} |")
         lines.append("")
         if bd and "completion" in bd:
             lines += ["Completion (in-between error x 1e-4; diversity: mean distance between 4 random-state samples):",
@@ -110,12 +115,11 @@ def write_markdown(results: dict, runs: dict, args, path: Path) -> None:
         if bd:
             fc = bd["feature_change"]
             tail = {m: sum(v[-10:]) / len(v[-10:]) for m, v in fc.items() if m != "ground_truth"}
-            lines += [f"Fig. 3 (feature change, `img/feature_change_{name}.png`): ground truth level "
-                      f"{fc['ground_truth']:.4f}; mean of the last 10 generated steps: "
-                      + ", ".join(f"{m} {v:.4f}" for m, v in tail.items()), "",
-                      f"![feature change {name}](img/feature_change_{name}.png)", ""]
-    for note in sorted({n for pv in results.values() for r in pv.values() for n in r.get("notes", [])}):
-        lines.append(f"Note: {note}.")
+            lines += [f"Fig. 3 (feature change after 2 given frames): ground truth level {fc['ground_truth']:.4f}; "
+                      "mean of the last 10 generated steps: " + ", ".join(f"{m} {v:.4f}" for m, v in tail.items()),
+                      "", f"![feature change {name}](img/feature_change_{name}.png)", ""]
+    notes = sorted({n for s in summaries.values() for r in s["results"].values() for n in r.get("notes", [])})
+    lines += [f"Note: {n}." for n in notes]
     from meshseq.io import atomic_output
 
     with atomic_output(path, force=True) as tmp:
@@ -143,7 +147,7 @@ def main() -> None:
     args.argv = [a for a in os.sys.argv[1:]]
     out = Path(args.out)
     results, runs = {}, {}
-    img = Path(args.results).parent / "img"
+    img = Path(args.results).parent / "img"  # noqa: the Fig. 3 PNGs go beside the Markdown
     for name in [d.strip() for d in args.data.split(",") if d.strip()]:
         data = SHARED / f"{name}.npz"
         if not data.is_file():
@@ -159,8 +163,17 @@ def main() -> None:
             if plots is not None:
                 img.mkdir(parents=True, exist_ok=True)
                 (img / f"feature_change_{name}.png").write_bytes((plots / "feature_change.png").read_bytes())
-            write_markdown(results, runs, args, Path(args.results))  # after every run: partial results survive
+            config = {k: getattr(args, k) for k in ("iterations", "batch", "window", "stride", "latent")}
+            (out / name / "summary.json").write_text(json.dumps(
+                {"results": results[name], "runs": runs[name], "config": config, "argv": args.argv}))
+            # after every run, from every data set finished in --out (also by other invocations)
+            write_markdown(collect(out), args.device, Path(args.results))
     print(f"wrote {args.results}")
+
+
+def collect(out: Path) -> dict:
+    """``{data set: summary}`` of every data set with a summary.json in ``out``."""
+    return {p.parent.name: json.loads(p.read_text()) for p in sorted(out.glob("*/summary.json"))}
 
 
 if __name__ == "__main__":
