@@ -214,3 +214,35 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "--window 32" in capsys.readouterr().err
     assert main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--batch", "0"]) == 2
     assert "--batch 0" in capsys.readouterr().err
+
+
+def test_tensorboard_events_when_installed_and_one_note_when_not(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    _, data = limb_data(frames=20)
+    cfg = TrainConfig(iterations=4, window=6, batch=2, eval_every=2, checkpoint_every=0, log_every=1)
+    notes = []
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)  # import fails
+    train(data, tmp_path / "a", cfg, SMALL, device="cpu", progress=False, log=notes.append)
+    assert len([n for n in notes if "tensorboard is not installed" in n]) == 1
+    assert not (tmp_path / "a" / "tensorboard").exists()
+
+    scalars = []
+
+    class FakeWriter:
+        def __init__(self, log_dir, purge_step):
+            scalars.append(("init", log_dir, purge_step))
+
+        def add_scalar(self, tag, value, step):
+            scalars.append((tag, value, step))
+
+        def close(self):
+            scalars.append(("close",))
+
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", types.SimpleNamespace(SummaryWriter=FakeWriter))
+    train(data, tmp_path / "b", cfg, SMALL, device="cpu", progress=False, log=None)
+    assert scalars[0] == ("init", str(tmp_path / "b" / "tensorboard"), 1) and scalars[-1] == ("close",)
+    tags = {s[0] for s in scalars[1:-1]}
+    assert {"loss", "rec", "bd", "kl", "l2", "heldout/rec", "heldout/bd"} <= tags
+    assert sorted({s[2] for s in scalars[1:-1] if s[0] == "heldout/rec"}) == [2, 4]
