@@ -176,3 +176,19 @@ def test_bad_input_is_one_line_and_writes_nothing(argv, fragment, trained, tmp_p
     err = capsys.readouterr().err
     assert err.startswith("meshseq: error: ") and err.count("\n") == 1 and fragment in err, err
     assert list(out_dir.iterdir()) == []
+
+
+def test_python_api_predict_and_complete_on_vertex_arrays(model, trained):
+    v = trained[2].vertices
+    out = model.predict(v[5:8], 12)
+    assert out.shape == (15,) + v.shape[1:] and np.array_equal(out[:3], v[5:8])
+    assert np.isfinite(out).all()
+    feats = model.predict(model.features(v[5:8]), 12)
+    assert feats.shape == (12, v.shape[1], 9)
+    comp = model.complete(v[[4, 15, 30]], [10, 14], samples=2, seed=3)
+    assert comp.shape == (2, 27) + v.shape[1:]
+    for i, k in ((0, 4), (11, 15), (26, 30)):
+        assert np.array_equal(comp[:, i], np.broadcast_to(v[k], comp[:, i].shape))
+    assert not np.allclose(comp[0], comp[1])
+    with pytest.raises(Exception, match="lengths"):
+        model.complete(v[[4, 15, 30]], [10])

@@ -149,6 +149,44 @@ class Model:
         return _back(frames, as_np)
 
 
+    # -- synthesis (see meshseq.synthesize) ---------------------------------------------------
+
+    def predict(self, frames, n_frames: int, sample: bool = False) -> np.ndarray:
+        """Continue a motion.
+
+        ``frames``: given vertices ``(U, V, 3)`` -> vertices ``(U + n, V, 3)``: the given frames
+        (exactly), then ``n`` generated ones continuing from the last; or scaled features
+        ``(U, V, 9)`` -> the generated features ``(n, V, 9)``.
+        """
+        from meshseq import synthesize
+
+        f = np.asarray(frames)
+        if f.shape[-1] == 9:
+            return synthesize.predict(self, f, n_frames, sample=sample)
+        given = np.asarray(f, dtype=np.float64)
+        feats = self.features(given)
+        gen = synthesize.predict(self, feats, n_frames, sample=sample)
+        return synthesize.assemble_vertices(self, np.concatenate([feats, gen]),
+                                            {i: given[i] for i in range(len(given))})
+
+    def complete(self, keyframes, lengths, samples: int = 1, seed: int | None = None) -> np.ndarray:
+        """Fill the gaps between keyframes ``(K, V, 3)`` (vertices).
+
+        ``lengths``: frames to generate between consecutive keys (one int for all gaps, or K-1).
+        Returns ``(samples, T, V, 3)`` vertices passing exactly through every key
+        (``T = K + sum(lengths)``); several samples come from random initial states.
+        """
+        from meshseq import synthesize
+
+        keys = np.asarray(keyframes, dtype=np.float64)
+        if keys.ndim != 3 or len(keys) < 2:
+            raise MeshseqError(f"keyframes must be (K >= 2, V, 3) vertices, got shape {keys.shape}")
+        gaps = [int(lengths)] * (len(keys) - 1) if np.ndim(lengths) == 0 else [int(g) for g in lengths]
+        if len(gaps) != len(keys) - 1:
+            raise MeshseqError(f"lengths: expected one number or {len(keys) - 1}, got {len(gaps)}")
+        return synthesize.complete_keyframes(self, keys, gaps, samples=samples, seed=0 if seed is None else seed)
+
+
 def load(run: str | os.PathLike, device: str = "cpu") -> Model:
     """Load a trained model from a run folder (its newest checkpoint) or a checkpoint folder.
 

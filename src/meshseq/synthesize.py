@@ -207,6 +207,47 @@ def complete_cma(model, key_a, key_b, n_between: int, max_evals: int = 400, max_
     return Completion(frames, np.array([n - 1]), np.array([gap]))
 
 
+def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method: str = "ours",
+                       samples: int = 1, seed: int = 0, cma_evals: int = 400,
+                       cma_seconds: float = 60.0) -> np.ndarray:
+    """Fill every gap between consecutive keyframes and return vertices through all of them.
+
+    Args:
+        key_vertices: ``(K, V, 3)`` keyframes; gaps: ``K - 1`` numbers of frames to generate
+            between consecutive keys.
+        method: ``ours`` (stitched chains), ``cma`` (CMA-ES baseline) or ``linear`` (ACAP
+            interpolation).
+        samples: completions from random initial states (``ours`` only; 1 = the trained states).
+    Returns:
+        ``(samples, K + sum(gaps), V, 3)`` vertices, exactly the keys at the key frames.
+    """
+    from meshseq.baselines import COMPLETION_METHODS, linear_interpolation
+
+    if method not in COMPLETION_METHODS:
+        raise MeshseqError(f"unknown completion method {method!r}; expected one of {COMPLETION_METHODS}")
+    if samples > 1 and method != "ours":
+        raise MeshseqError(f"{samples} samples need the method 'ours'")
+    keys = np.asarray(key_vertices, dtype=np.float64)
+    key_f = model.features(keys)
+    out = []
+    for s in range(samples):
+        parts, anchors, offset = [], {0: keys[0]}, 0
+        for i, gap in enumerate(gaps):  # per gap; each completion is batched inside
+            if method == "ours":
+                f = complete(model, key_f[i], key_f[i + 1], gap, random_state=samples > 1,
+                             seed=seed * 1000 + s * 97 + i).frames[0]
+            elif method == "cma":
+                f = complete_cma(model, key_f[i], key_f[i + 1], gap, max_evals=cma_evals,
+                                 max_seconds=cma_seconds, seed=seed + i).frames[0]
+            else:
+                f = linear_interpolation(key_f[i], key_f[i + 1], gap)
+            parts.append(f if i == 0 else f[1:])
+            offset += gap + 1
+            anchors[offset] = keys[i + 1]
+        out.append(assemble_vertices(model, np.concatenate(parts), anchors))
+    return np.stack(out)
+
+
 # --------------------------------------------------------------------------------------------
 # vertices
 

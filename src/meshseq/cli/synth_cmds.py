@@ -228,28 +228,10 @@ def cmd_complete(args) -> int:
     model, seq = _load(args)
     if keys[0] < 0 or keys[-1] >= seq.n_frames:
         raise MeshseqError(f"--keyframes {args.keyframes}: {args.data} has frames 0..{seq.n_frames - 1}")
-    key_v = seq.vertices[keys]
-    key_f = model.features(key_v)
     gaps = [args.between if args.between is not None else b - a - 1 for a, b in zip(keys, keys[1:])]
-    samples_v = []
-    for s in range(args.samples):
-        parts, anchors, offset = [], {}, 0
-        for i, gap in enumerate(gaps):
-            if args.method == "ours":
-                comp = synthesize.complete(model, key_f[i], key_f[i + 1], gap, samples=1,
-                                           random_state=args.samples > 1, seed=args.seed * 1000 + s * 97 + i)
-                f = comp.frames[0]
-            elif args.method == "cma":
-                f = synthesize.complete_cma(model, key_f[i], key_f[i + 1], gap, max_evals=args.cma_evals,
-                                            max_seconds=args.cma_seconds, seed=args.seed + i).frames[0]
-            else:
-                f = baselines.linear_interpolation(key_f[i], key_f[i + 1], gap)
-            parts.append(f if i == 0 else f[1:])
-            anchors[offset] = key_v[i]
-            offset += gap + 1
-            anchors[offset] = key_v[i + 1]
-        feats = np.concatenate(parts)
-        samples_v.append(synthesize.assemble_vertices(model, feats, anchors))
+    samples_v = synthesize.complete_keyframes(model, seq.vertices[keys], gaps, method=args.method,
+                                              samples=args.samples, seed=args.seed, cma_evals=args.cma_evals,
+                                              cma_seconds=args.cma_seconds)
     if args.samples == 1:
         path = _write(samples_v[0], seq.faces, f"{seq.name}_completed", args, seq.fps)
         print(f"wrote {path}: {len(samples_v[0])} frames through keyframes {keys} ({args.method})")
