@@ -236,3 +236,11 @@ def test_rig_axes_of_the_default_body_match_anny(body):
     default = RigAxes.default()
     assert np.allclose(default.elbow_axis, body.rig.elbow_axis, atol=0.05)
     assert abs(default.elbow_rest - body.rig.elbow_rest) < 5.0
+
+
+def test_missing_anny_names_the_extra(monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "anny", None)  # import anny -> ImportError
+    with pytest.raises(MeshseqError, match=r"meshseq\[bodies\]"):
+        bodies._import_anny()
