@@ -249,8 +249,11 @@ def test_h5_addressing(tmp_path):
         f["50004_jumping_jacks"] = np.transpose(verts, (1, 2, 0)).astype(np.float32)  # (V, 3, T)
         f["50004_punching"] = np.transpose(verts[:3], (1, 2, 0))
         f["faces"] = OCTA_F.astype(np.int32)
+        f.attrs["fps"] = 60.0
+        f["50004_punching"].attrs["fps"] = 30.0
     seq = load_sequence(f"{path}:50004_jumping_jacks")
     assert seq.name == "50004_jumping_jacks" and seq.n_frames == 7
+    assert seq.fps == 60.0 and load_sequence(f"{path}:50004_punching").fps == 30.0  # file, then sequence attrs
     np.testing.assert_allclose(seq.vertices, verts, rtol=1e-6)
     np.testing.assert_array_equal(seq.faces, OCTA_F)
     msg = expect_error(f"{path}:50004_running", "50004_running", "available: 50004_jumping_jacks, 50004_punching",

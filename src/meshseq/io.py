@@ -343,13 +343,15 @@ def _load_h5(path: Path, seq_name: str | None, *, name: str | None) -> MeshSeque
         try:
             raw = np.asarray(handle[seq_name][()])
             faces = np.asarray(handle["faces"][()])
+            fps = handle[seq_name].attrs.get("fps", handle.attrs.get("fps"))
         except Exception as exc:
             raise MeshseqError(f"{address}: cannot read ({_one_line(exc)})") from None
     if raw.ndim != 3 or raw.shape[1] != 3:
         raise MeshseqError(f"{address}: expected vertices stored as (V, 3, T), got {raw.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
         raise MeshseqError(f"{path}: 'faces' must be integers of shape (F, 3), got {faces.shape} {faces.dtype}")
-    return validate_sequence(np.transpose(raw, (2, 0, 1)), faces, name=name or seq_name, source=address)
+    fps = float(fps) if fps is not None and np.isscalar(fps) and np.isfinite(fps) and fps > 0 else None
+    return validate_sequence(np.transpose(raw, (2, 0, 1)), faces, name=name or seq_name, source=address, fps=fps)
 
 
 def _one_line(exc: BaseException) -> str:
