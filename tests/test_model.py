@@ -33,14 +33,14 @@ def make(topo, variant="bd", conv="sparse", latent=16, layers=2, seed=0):
 
 
 def ring_mean_reference(x: np.ndarray, topo: Topology) -> np.ndarray:
-    """Brute-force 1-ring mean of vertex-major ``(V, ...)`` from the adjacency lists."""
-    return np.stack([x[list(r)].mean(0) for r in topo.adjacency.tolil().rows])
+    """Brute-force 1-ring mean of channel-major ``(C, V, ...)`` from the adjacency lists."""
+    return np.stack([x[:, list(r)].mean(1) for r in topo.adjacency.tolil().rows], 1)
 
 
 @pytest.mark.parametrize("impl", ["sparse", "gather"])
 def test_neighbor_mean_matches_brute_force_and_gradients_agree(limb, impl):
-    x = torch.randn(limb.n_vertices, 3, 5, dtype=torch.float32, requires_grad=True)
-    ring = NeighborMean(limb, impl)
+    x = torch.randn(5, limb.n_vertices, 3, dtype=torch.float32, requires_grad=True)  # (C, V, B)
+    ring = NeighborMean(limb, impl, channels=5)
     y = ring(x)
     np.testing.assert_allclose(y.detach().numpy(), ring_mean_reference(x.detach().numpy(), limb), atol=1e-6)
     # backward = transpose of the mean operator: <A x, g> = <x, A^T g>
@@ -48,21 +48,24 @@ def test_neighbor_mean_matches_brute_force_and_gradients_agree(limb, impl):
     (gx,) = torch.autograd.grad(y, x, g)
     adj = limb.adjacency.toarray()
     A = torch.from_numpy(adj / adj.sum(1, keepdims=True)).float()
-    torch.testing.assert_close(gx, torch.einsum("vw,vbc->wbc", A, g), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(gx, torch.einsum("vw,cvb->cwb", A, g), atol=1e-5, rtol=1e-5)
 
 
 def test_mesh_conv_is_paper_eq2(limb):
     ring = NeighborMean(limb, "sparse")
     conv = MeshConv(9, 9, ring)
-    x = torch.randn(limb.n_vertices, 2, 9)  # vertex-major (V, B, C)
+    x = torch.randn(9, limb.n_vertices, 2)  # channel-major (C, V, B)
     W1, W2 = conv.weight[:9].detach(), conv.weight[9:].detach()
     ring_x = torch.from_numpy(ring_mean_reference(x.numpy(), limb)).float()
     with torch.no_grad():
         conv.bias.uniform_()
-        torch.testing.assert_close(conv(x), x @ W1 + ring_x @ W2 + conv.bias, atol=1e-5, rtol=1e-5)
+        # per vertex: y_i = W1^T x_i + W2^T mean_ring(x)_i + b (the paper's Eq. 2, column vectors)
+        xr, rr = x.permute(1, 2, 0), ring_x.permute(1, 2, 0)  # (V, B, C) rows
+        expected = (xr @ W1 + rr @ W2 + conv.bias).permute(2, 0, 1)
+        torch.testing.assert_close(conv(x), expected, atol=1e-5, rtol=1e-5)
         b = torch.randn(9)
-        torch.testing.assert_close(conv(x, transpose=True, bias=b), x @ W1.t() + ring_x @ W2.t() + b,
-                                   atol=1e-5, rtol=1e-5)
+        expected = (xr @ W1.t() + rr @ W2.t() + b).permute(2, 0, 1)
+        torch.testing.assert_close(conv(x, transpose=True, bias=b), expected, atol=1e-5, rtol=1e-5)
 
 
 def test_fc_weight_gradient_summed_over_time_equals_plain_autograd(limb):
@@ -73,12 +76,12 @@ def test_fc_weight_gradient_summed_over_time_equals_plain_autograd(limb):
     def grads(deferred):
         m.zero_grad()
         fc = m._fc_ops(deferred=deferred)
-        x = w[:, 0].transpose(0, 1).contiguous()
+        x = w[:, 0].permute(2, 1, 0).contiguous()
         state = m.initial_state(2)
         total = 0
         for t in range(1, 5):
-            state, x, mu, _ = m._step_vm(state, x, fc, False, None)
-            total = total + (x - w[:, t].transpose(0, 1)).square().sum() + mu.square().sum()
+            state, x, mu, _ = m._step_cm(state, x, fc, False, None)
+            total = total + (x - w[:, t].permute(2, 1, 0)).square().sum() + mu.square().sum()
         (total + m.fc.weight.square().sum()).backward()
         return {n: p.grad.clone() for n, p in m.named_parameters() if p.grad is not None}
 
@@ -205,3 +208,36 @@ def test_flop_count_formulas(limb):
     assert f["fc"] == 4 * 2 * (2 * V * 9 * 16)  # encoder FC and its transpose
     assert f["lstm"] == 4 * 2 * (2 * 4 * 16 * 32)  # 2 layers, 4 gates, [x, h] -> 16
     assert f["conv"] == 4 * 3 * 2 * (2 * 2 * V * 81 + 2 * nnz * 9)
+
+
+def test_encode_decode_match_a_plain_batch_major_reference(limb):
+    """The channel-major internals compute exactly the documented network on (B, V, 9) frames."""
+    m = make(limb)
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.05 * torch.randn_like(p))  # non-zero biases too
+    adj = limb.adjacency.toarray()
+    A = torch.from_numpy(adj / adj.sum(1, keepdims=True)).float()
+    B, V = 3, limb.n_vertices
+    x = torch.randn(B, V, 9) * 0.3
+
+    def conv(c, y, transpose, bias):
+        W1, W2 = c.weight[:9], c.weight[9:]
+        if transpose:
+            W1, W2 = W1.t(), W2.t()
+        return y @ W1 + torch.einsum("vw,bwc->bvc", A, y) @ W2 + bias
+
+    with torch.no_grad():
+        y = x
+        for c in m.convs:
+            y = torch.tanh(conv(c, y, False, c.bias))
+        e = y.reshape(B, V * 9) @ m.fc.weight.t() + m.fc.bias  # vertex-major flattening
+        mu, logvar = m.encode(x)
+        torch.testing.assert_close(mu, m.fc_mu(e), atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(logvar, m.fc_logvar(e), atol=1e-5, rtol=1e-4)
+        h = torch.randn(B, 16)
+        y = (h @ m.fc.weight + m.dec_fc_bias).view(B, V, 9)
+        for k in range(3):
+            y = conv(m.convs[2 - k], y, True, m.dec_conv_bias[k])
+            y = torch.tanh(y) if k < 2 else y
+        torch.testing.assert_close(m.decode(h), y, atol=1e-5, rtol=1e-4)

@@ -94,9 +94,19 @@ class ModelConfig:
 # --------------------------------------------------------------------------------------------
 # 1-ring mean operators
 #
-# Inside the network, frames are vertex-major: ``(V, B, C)``. The ring mean is then a sparse
-# matrix times the ``(V, B*C)`` view and the channel maps are one ``(V*B, C) @ (C, C)`` matmul,
-# with no transposes; only the FC layers need ``(B, V*C)`` (one copy in, one out per step).
+# Inside the network, frames are channel-major: ``(C, V, B)``. Then the channel maps are one
+# ``(C, C) @ (C, V*B)`` matmul each (the fast shape for a 9 x 9 map), the ring mean is one
+# block-diagonal sparse matrix ``I_C (x) A`` times the ``(C*V, B)`` view, and the FC layers are
+# ``(L, C*V) @ (C*V, B)`` matmuls: no transposes or copies inside a step.
+
+
+def _csr(matrix) -> torch.Tensor:
+    m = matrix.tocoo()
+    ij = torch.from_numpy(np.stack([m.row, m.col])).long()
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Ss]parse CSR tensor support is in beta.*")
+        t = torch.sparse_coo_tensor(ij, torch.from_numpy(m.data).float(), m.shape, check_invariants=True)
+        return t.coalesce().to_sparse_csr()
 
 
 class _SparseMean(torch.autograd.Function):
@@ -113,19 +123,21 @@ class _SparseMean(torch.autograd.Function):
 
 
 class NeighborMean(nn.Module):
-    """The 1-ring mean ``(1/d_i) sum_{j in N(i)} x_j`` of vertex-major tensors ``(V, ...)``.
+    """The 1-ring mean ``(1/d_i) sum_{j in N(i)} x_j`` of channel-major tensors ``(C, V, ...)``.
 
-    ``impl="sparse"``: a row-normalised sparse ``(V, V)`` CSR matrix times the ``(V, N)`` view;
-    ``impl="gather"``: a padded ``(V, D)`` index table (D the largest degree) and weights
-    ``mask / d`` (work ``V D N``). Isolated vertices (degree 0) get 0.
+    ``impl="sparse"``: the row-normalised adjacency ``A`` ``(V, V)``, block-diagonal over the
+    ``channels`` (``I_C (x) A``, CSR), times the ``(C*V, N)`` view; ``impl="gather"``: a padded
+    ``(V, D)`` index table (D the largest degree) and weights ``mask / d`` (work ``C V D N``).
+    Isolated vertices (degree 0) get 0.
     """
 
-    def __init__(self, topology: Topology, impl: str = "sparse"):
+    def __init__(self, topology: Topology, impl: str = "sparse", channels: int = 9):
         super().__init__()
         if impl not in CONV_IMPLS:
             raise MeshseqError(f"--conv {impl!r}: expected one of {', '.join(CONV_IMPLS)}")
         self.impl = impl
         self.n_vertices = topology.n_vertices
+        self.channels = channels
         deg = np.maximum(topology.degrees, 1).astype(np.float64)
         if impl == "gather":
             index, mask = topology.padded_neighbors()
@@ -134,35 +146,31 @@ class NeighborMean(nn.Module):
             self.register_buffer("weight", torch.from_numpy(weight).float(), persistent=False)
             self.width = index.shape[1]
         else:
-            adj = topology.adjacency.tocoo()
-            vals = 1.0 / deg[adj.row]
-            ij = torch.from_numpy(np.stack([adj.row, adj.col])).long()
-            n = self.n_vertices
-            v = torch.from_numpy(vals).float()
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message=".*[Ss]parse CSR tensor support is in beta.*")
-                A = torch.sparse_coo_tensor(ij, v, (n, n), check_invariants=True).coalesce()
-                At = torch.sparse_coo_tensor(ij.flip(0), v, (n, n), check_invariants=True).coalesce()
-                self.register_buffer("A", A.to_sparse_csr(), persistent=False)
-                self.register_buffer("At", At.to_sparse_csr(), persistent=False)
+            import scipy.sparse as sp
+
+            A = sp.diags(1.0 / deg) @ topology.adjacency
+            big = sp.kron(sp.identity(channels, format="csr"), A, format="csr")
+            self.register_buffer("A", _csr(big), persistent=False)
+            self.register_buffer("At", _csr(big.T.tocsr()), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """``x`` ``(V, ...)`` -> ``(V, ...)``."""
-        V = x.shape[0]
-        xv = x.reshape(V, -1)
+        """``x`` ``(C, V, ...)`` -> ``(C, V, ...)``."""
+        C, V = x.shape[:2]
         if self.impl == "gather":
-            g = xv.index_select(0, self.index).view(V, self.width, -1)
-            y = torch.einsum("vdn,vd->vn", g, self.weight)
-        else:
-            y = _SparseMean.apply(xv, self.A, self.At)
-        return y.view(x.shape)
+            xv = x.reshape(C, V, -1)
+            g = xv.index_select(1, self.index).view(C, V, self.width, -1)
+            return torch.einsum("cvdn,vd->cvn", g, self.weight).view(x.shape)
+        if C != self.channels:
+            raise ValueError(f"NeighborMean(sparse) was built for {self.channels} channels, got {C}")
+        return _SparseMean.apply(x.reshape(C * V, -1), self.A, self.At).view(x.shape)
 
 
 class MeshConv(nn.Module):
-    """Paper Eq. 2 on vertex-major ``(V, ..., C_in)`` -> ``(V, ..., C_out)``: ``x W1 + mean_ring(x) W2 + b``.
+    """Paper Eq. 2 on channel-major ``(C_in, V, ...)`` -> ``(C_out, V, ...)``.
 
-    ``forward(x, transpose=True, bias=b)`` applies the layer's weights transposed with another
-    bias (the tied decoder), ``(V, ..., C_out)`` -> ``(V, ..., C_in)``.
+    Per vertex ``y_i = W1^T x_i + W2^T mean_ring(x)_i + b`` (``weight = [W1; W2]``,
+    ``(2 C_in, C_out)``). ``forward(x, transpose=True, bias=b)`` applies the layer's weights
+    transposed with another bias (the tied decoder), ``(C_out, V, ...)`` -> ``(C_in, V, ...)``.
     """
 
     def __init__(self, c_in: int, c_out: int, ring: NeighborMean):
@@ -174,19 +182,32 @@ class MeshConv(nn.Module):
         self.c_in, self.c_out = c_in, c_out
 
     def forward(self, x: torch.Tensor, transpose: bool = False, bias: torch.Tensor | None = None):
-        if transpose:
-            w1, w2 = self.weight[: self.c_in].t(), self.weight[self.c_in :].t()
-        else:
-            w1, w2 = self.weight[: self.c_in], self.weight[self.c_in :]
+        w1, w2 = self.weight[: self.c_in], self.weight[self.c_in :]
+        if not transpose:  # channel-major: y = W^T x
+            w1, w2 = w1.t(), w2.t()
         b = self.bias if bias is None else bias
-        rows = x.reshape(-1, x.shape[-1])
+        cols = x.reshape(x.shape[0], -1)  # (C_in, V*B)
+        out_shape = (w1.shape[0],) + tuple(x.shape[1:])
         # mean_ring(x) W2 == mean_ring(x W2): apply the (linear) ring mean after the channel map.
-        y = torch.addmm(b, rows, w1).view(*x.shape[:-1], -1)
-        return y + self.ring((rows @ w2).view(*x.shape[:-1], -1))
+        y = torch.addmm(b[:, None], w1, cols).view(out_shape)
+        return y + self.ring((w2 @ cols).view(out_shape))
 
 
 # --------------------------------------------------------------------------------------------
 # the big FC layer, with its weight gradient summed over time in one matmul
+#
+# The parameter ``fc.weight`` is ``(L, V*C)`` with columns in vertex-major order (vertex v,
+# channel c at v*C + c) and ``dec_fc_bias`` is ``(V*C,)`` likewise; a roll-out works with their
+# channel-major copies (column c*V + v), made once per roll-out.
+
+
+def _to_channel_major(w: torch.Tensor, V: int, C: int) -> torch.Tensor:
+    """``(..., V*C)`` vertex-major columns -> ``(..., C*V)`` channel-major (a copy)."""
+    return w.reshape(*w.shape[:-1], V, C).transpose(-1, -2).reshape(*w.shape[:-1], C * V)
+
+
+def _to_vertex_major(w: torch.Tensor, V: int, C: int) -> torch.Tensor:
+    return w.reshape(*w.shape[:-1], C, V).transpose(-1, -2).reshape(*w.shape[:-1], V * C)
 
 
 class _GradBank:
@@ -206,68 +227,85 @@ class _GradBank:
 
 
 class _WeightGate(torch.autograd.Function):
-    """Identity on the FC weight for one roll-out; its backward hands over the collected gradient.
+    """The FC weight, channel-major, for one roll-out; its backward hands over the collected gradient.
 
-    The steps' ``_DeferredLinear`` nodes give it no gradient; they store their (input, output
-    gradient) pairs in the bank instead, and this node (which autograd runs after all of them)
-    forms ``sum_t a_t^T b_t`` as ONE matmul over all time steps, instead of one memory-bound
-    ``(L, V*C)`` product and accumulation per step and layer.
+    The steps' ``_Encode``/``_Decode`` nodes give it no gradient; they store their (input,
+    output gradient) pairs in the bank instead, and this node (which autograd runs after all of
+    them) forms ``sum_t a_t^T b_t`` as ONE matmul over all time steps, instead of one
+    memory-bound ``(L, V*C)`` product and accumulation per step and layer.
     """
 
     @staticmethod
-    def forward(ctx, weight, bank):
+    def forward(ctx, weight, bank, V, C):
         ctx.set_materialize_grads(False)
-        ctx.bank = bank
-        return weight.view_as(weight)
+        ctx.bank, ctx.V, ctx.C = bank, V, C
+        return _to_channel_major(weight, V, C)
 
     @staticmethod
     def backward(ctx, grad):
         g = ctx.bank.gradient()
         if grad is not None:
             g = grad if g is None else g + grad
-        return g, None
+        return (None if g is None else _to_vertex_major(g, ctx.V, ctx.C)), None, None, None
 
 
-class _DeferredLinear(torch.autograd.Function):
-    """``x W^T + b`` (``transpose=False``) or ``x W + b`` (``transpose=True``), W ``(L, N)``;
-    the weight gradient goes to the bank (see ``_WeightGate``)."""
+class _Encode(torch.autograd.Function):
+    """``e = x^T W^T + b``: x ``(N, B)`` (channel-major frames), W ``(L, N)`` -> ``(B, L)``."""
 
     @staticmethod
-    def forward(ctx, x, weight, bias, bank, transpose):
+    def forward(ctx, x, weight, bias, bank):
         ctx.save_for_backward(x, weight)
-        ctx.bank, ctx.transpose = bank, transpose
-        return torch.addmm(bias, x, weight if transpose else weight.t())
+        ctx.bank = bank
+        return torch.addmm(bias, x.t(), weight.t())
 
     @staticmethod
-    def backward(ctx, g):
+    def backward(ctx, g):  # g (B, L)
         x, weight = ctx.saved_tensors
-        if ctx.transpose:  # y = x W: dW = x^T g
-            gx = g @ weight.t()
-            ctx.bank.left.append(x)
-            ctx.bank.right.append(g)
-        else:  # y = x W^T: dW = g^T x
-            gx = g @ weight
-            ctx.bank.left.append(g)
-            ctx.bank.right.append(x)
-        return gx, None, g.sum(0), None, None
+        ctx.bank.left.append(g)
+        ctx.bank.right.append(x.t())  # dW = g^T x^T
+        return (g @ weight).t(), None, g.sum(0), None
+
+
+class _Decode(torch.autograd.Function):
+    """``y = W^T h^T + b``: h ``(B, L)``, W ``(L, N)`` -> ``(N, B)`` (channel-major frames)."""
+
+    @staticmethod
+    def forward(ctx, h, weight, bias, bank):
+        ctx.save_for_backward(h, weight)
+        ctx.bank = bank
+        return torch.addmm(bias[:, None], weight.t(), h.t())
+
+    @staticmethod
+    def backward(ctx, g):  # g (N, B)
+        h, weight = ctx.saved_tensors
+        ctx.bank.left.append(h)
+        ctx.bank.right.append(g.t())  # dW = h^T g^T
+        return (weight @ g).t(), None, g.sum(1), None
 
 
 class _FC:
-    """How a roll-out applies the big FC weight: plainly, or through the gate and bank (training)."""
+    """The big FC weight (and decoder bias) of one roll-out in channel-major form; with
+    ``deferred`` (training) its weight gradient is formed once, after all steps."""
 
-    def __init__(self, weight: torch.Tensor, deferred: bool):
+    def __init__(self, model: "BDLSTM", deferred: bool):
+        V, C = model.config.n_vertices, model.config.channels
         self.bank = _GradBank() if deferred else None
-        self.weight = _WeightGate.apply(weight, self.bank) if deferred else weight
+        if deferred:
+            self.weight = _WeightGate.apply(model.fc.weight, self.bank, V, C)
+        else:
+            self.weight = _to_channel_major(model.fc.weight, V, C)
+        self.bias = model.fc.bias
+        self.dec_bias = _to_channel_major(model.dec_fc_bias, V, C)
 
-    def encode(self, x, bias):  # (B, N) -> (B, L)
+    def encode(self, x):  # (C*V, B) -> (B, L)
         if self.bank is None:
-            return F.linear(x, self.weight, bias)
-        return _DeferredLinear.apply(x, self.weight, bias, self.bank, False)
+            return torch.addmm(self.bias, x.t(), self.weight.t())
+        return _Encode.apply(x, self.weight, self.bias, self.bank)
 
-    def decode(self, h, bias):  # (B, L) -> (B, N)
+    def decode(self, h):  # (B, L) -> (C*V, B)
         if self.bank is None:
-            return torch.addmm(bias, h, self.weight)
-        return _DeferredLinear.apply(h, self.weight, bias, self.bank, True)
+            return torch.addmm(self.dec_bias[:, None], self.weight.t(), h.t())
+        return _Decode.apply(h, self.weight, self.dec_bias, self.bank)
 
 
 # --------------------------------------------------------------------------------------------
@@ -277,8 +315,8 @@ class _FC:
 class BDLSTM(nn.Module):
     """Encoder (Conv + FC + VAE head), LSTM(s), tied decoder; see the module docstring.
 
-    Public methods take frames ``(B, V, C)``; the ``_vm`` methods work on vertex-major
-    ``(V, B, C)`` frames, the layout of the roll-out. Parameters are created in a fixed order, so
+    Public methods take frames ``(B, V, C)``; the ``_cm`` methods work on channel-major
+    ``(C, V, B)`` frames, the layout of the roll-out. Parameters are created in a fixed order, so
     a seed gives the same initial weights on every machine and every rank.
     """
 
@@ -290,7 +328,7 @@ class BDLSTM(nn.Module):
             )
         self.config = config
         C, L, V = config.channels, config.latent, config.n_vertices
-        self.ring = NeighborMean(topology, config.conv_impl)
+        self.ring = NeighborMean(topology, config.conv_impl, channels=C)
         self.convs = nn.ModuleList(MeshConv(C, C, self.ring) for _ in range(config.conv_layers))
         self.fc = nn.Linear(V * C, L)
         self.fc_mu = nn.Linear(L, L)
@@ -302,22 +340,21 @@ class BDLSTM(nn.Module):
         self.lstm_backward = nn.LSTM(L, L, config.lstm_layers) if config.variant == "std-bd" else None
 
     def _fc_ops(self, deferred: bool = False) -> _FC:
-        return _FC(self.fc.weight, deferred and torch.is_grad_enabled() and self.fc.weight.requires_grad)
+        return _FC(self, deferred and torch.is_grad_enabled() and self.fc.weight.requires_grad)
 
-    # -- the pieces (vertex-major) --------------------------------------------------------------
+    # -- the pieces (channel-major) -----------------------------------------------------------
 
-    def _encode_vm(self, x: torch.Tensor, fc: _FC) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(V, B, C)`` -> ``(mu, logvar)`` ``(B, L)``."""
+    def _encode_cm(self, x: torch.Tensor, fc: _FC) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(C, V, B)`` -> ``(mu, logvar)`` ``(B, L)``."""
         for conv in self.convs:
             x = torch.tanh(conv(x))
-        flat = x.transpose(0, 1).reshape(x.shape[1], -1)  # (B, V*C), vertex-major flattening
-        e = fc.encode(flat, self.fc.bias)
+        e = fc.encode(x.reshape(-1, x.shape[-1]))
         return self.fc_mu(e), self.fc_logvar(e)
 
-    def _decode_vm(self, h: torch.Tensor, fc: _FC) -> torch.Tensor:
-        """``(B, L)`` -> ``dX`` ``(V, B, C)``."""
-        B = h.shape[0]
-        y = fc.decode(h, self.dec_fc_bias).view(B, self.config.n_vertices, -1).transpose(0, 1).contiguous()
+    def _decode_cm(self, h: torch.Tensor, fc: _FC) -> torch.Tensor:
+        """``(B, L)`` -> ``dX`` ``(C, V, B)``."""
+        C, V = self.config.channels, self.config.n_vertices
+        y = fc.decode(h).view(C, V, h.shape[0])
         K = len(self.convs)
         for k in range(K):
             y = self.convs[K - 1 - k](y, transpose=True, bias=self.dec_conv_bias[k])
@@ -325,21 +362,21 @@ class BDLSTM(nn.Module):
                 y = torch.tanh(y)
         return y
 
-    def _step_vm(self, state, x, fc: _FC, sample: bool, n_forward):
-        mu, logvar = self._encode_vm(x, fc)
+    def _step_cm(self, state, x, fc: _FC, sample: bool, n_forward):
+        mu, logvar = self._encode_cm(x, fc)
         z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         h, state = self._lstm(z, state, n_forward)
-        return state, x + self._decode_vm(h, fc), mu, logvar
+        return state, x + self._decode_cm(h, fc), mu, logvar
 
     # -- public, batch-major ----------------------------------------------------------------------
 
     def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Frames ``(B, V, C)`` -> ``(mu, logvar)``, each ``(B, L)``."""
-        return self._encode_vm(x.transpose(0, 1), self._fc_ops())
+        return self._encode_cm(x.permute(2, 1, 0), self._fc_ops())
 
     def decode(self, h: torch.Tensor) -> torch.Tensor:
         """LSTM outputs ``(B, L)`` -> frame changes ``dX`` ``(B, V, C)`` (tied weights)."""
-        return self._decode_vm(h, self._fc_ops()).transpose(0, 1)
+        return self._decode_cm(h, self._fc_ops()).permute(2, 1, 0)
 
     def initial_state(self, n_forward: int, n_backward: int = 0, device=None, dtype=torch.float32):
         """``(h, c)``, each ``(K, n_forward + n_backward, L)``: +init for forward rows, -init after."""
@@ -375,8 +412,8 @@ class BDLSTM(nn.Module):
         Returns:
             ``(state', x_next (B, V, C), mu (B, L), logvar (B, L))``.
         """
-        state, nxt, mu, logvar = self._step_vm(state, x.transpose(0, 1), self._fc_ops(), sample, n_forward)
-        return state, nxt.transpose(0, 1), mu, logvar
+        state, nxt, mu, logvar = self._step_cm(state, x.permute(2, 1, 0), self._fc_ops(), sample, n_forward)
+        return state, nxt.permute(2, 1, 0), mu, logvar
 
     def rollout(self, first: torch.Tensor, steps: int, state, sample: bool = False, n_forward=None):
         """Free-running roll-out from ``first`` ``(B, V, C)``.
@@ -385,14 +422,14 @@ class BDLSTM(nn.Module):
         ``(steps, B, L)``, final state)``. The time loop is the only Python loop.
         """
         fc = self._fc_ops(deferred=True)
-        x = first.transpose(0, 1).contiguous()  # (V, B, C)
+        x = first.permute(2, 1, 0).contiguous()  # (C, V, B)
         frames, mus, logvars = [x], [], []
         for _ in range(steps):
-            state, x, mu, logvar = self._step_vm(state, x, fc, sample, n_forward)
+            state, x, mu, logvar = self._step_cm(state, x, fc, sample, n_forward)
             frames.append(x)
             mus.append(mu)
             logvars.append(logvar)
-        out = torch.stack(frames).permute(2, 0, 1, 3)  # (n, V, B, C) -> (B, n, V, C)
+        out = torch.stack(frames).permute(3, 0, 2, 1)  # (n, C, V, B) -> (B, n, V, C)
         if steps:
             return out, torch.stack(mus), torch.stack(logvars), state
         empty = first.new_zeros(0, first.shape[0], self.config.latent)
