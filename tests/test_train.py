@@ -139,7 +139,7 @@ def test_loss_decreases_on_a_generated_sequence(tmp_path):
 def test_other_variants_train(tmp_path, variant):
     _, data = limb_data(frames=24)
     cfg = TrainConfig(iterations=3, window=6, batch=2, eval_every=0, checkpoint_every=0, log_every=1, w_kl=0.0)
-    train(data, tmp_path / "run", cfg, dict(SMALL, variant=variant), device="cpu", progress=False, log=None)
+    train(data, tmp_path / "run", cfg, dict(SMALL, variant=variant), device="cpu", progress=True, log=None)
     rows = read_metrics(tmp_path / "run")
     assert len(rows) == 3
     assert all(float(r["kl"]) >= 0 for r in rows)
@@ -214,6 +214,12 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "--window 32" in capsys.readouterr().err
     assert main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--batch", "0"]) == 2
     assert "--batch 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:  # argparse rejects a bad choice itself
+        main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--variant", "bi"])
+    assert exit_info.value.code == 2 and "--variant" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--device", "cuda"]) == 2
+        assert "CUDA is not available" in capsys.readouterr().err
 
 
 def test_tensorboard_events_when_installed_and_one_note_when_not(tmp_path, monkeypatch):

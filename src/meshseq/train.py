@@ -406,7 +406,7 @@ def train(
         ckpt.set_rng_state(stensors, smeta)
         np_rng.bit_generator.state = smeta["numpy_rng"]
         start = int(meta["iteration"])
-        log(f"resumed {found} at iteration {start}")
+        log(f"resumed {found} at iteration {start} (with its stored options; --iterations {config.iterations})")
     if dist_info.rank > 0:
         # different sampling noise per rank (the windows stay common); not restored bit for bit
         torch.manual_seed(config.seed + 7919 * dist_info.rank + start)
