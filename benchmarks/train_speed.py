@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import time
 from pathlib import Path
@@ -69,7 +70,7 @@ def ring_benchmark(topo, device, rows=16, repeat=20) -> dict:
     out = {}
     for impl in ("sparse", "gather"):
         ring = NeighborMean(topo, impl).to(device)
-        x = torch.randn(topo.n_vertices, rows, 9, device=device, requires_grad=True)
+        x = torch.randn(9, topo.n_vertices, rows, device=device, requires_grad=True)  # (C, V, B)
 
         def fwd_bwd():
             ring(x).square().sum().backward()
@@ -106,13 +107,14 @@ def main() -> None:
     sampler = WindowSampler([split], [seq.name], args.window)
     rng = np.random.default_rng(0)
     print(f"data: {args.data}: {seq.n_frames} frames, {seq.n_vertices} vertices (ACAP features in {t_extract:.1f} s)")
-    print(f"device: {device}, torch {torch.__version__}, {torch.get_num_threads()} CPU threads")
+    print(f"device: {device}, torch {torch.__version__}, {torch.get_num_threads()} CPU threads, "
+          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (other processes skew CPU timings)")
 
     peak = matmul_gflops(device)
     print(f"float32 matmul 4096^3: {peak:.1f} GFLOP/s (this machine's practical limit)")
     ring = ring_benchmark(topo, device, rows=2 * args.batch)
     faster = min(ring, key=ring.get)
-    print("1-ring mean, forward+backward on (V, 16, 9): "
+    print("1-ring mean, forward+backward on (9, V, 16): "
           + ", ".join(f"{k} {v:.2f} ms" for k, v in ring.items()) + f" -> {faster} is faster")
 
     results = {"device": str(device), "threads": torch.get_num_threads(), "matmul_gflops": peak,
@@ -164,6 +166,7 @@ def main() -> None:
             key = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
             print(prof.key_averages().table(sort_by=key, row_limit=15))
 
+    print(f"\nload average at the end: {os.getloadavg()[0]:.1f}")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
 
