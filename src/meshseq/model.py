@@ -187,10 +187,12 @@ class MeshConv(nn.Module):
             w1, w2 = w1.t(), w2.t()
         b = self.bias if bias is None else bias
         cols = x.reshape(x.shape[0], -1)  # (C_in, V*B)
-        out_shape = (w1.shape[0],) + tuple(x.shape[1:])
-        # mean_ring(x) W2 == mean_ring(x W2): apply the (linear) ring mean after the channel map.
-        y = torch.addmm(b[:, None], w1, cols).view(out_shape)
-        return y + self.ring((w2 @ cols).view(out_shape))
+        c = w1.shape[0]
+        out_shape = (c,) + tuple(x.shape[1:])
+        # mean_ring(x) W2 == mean_ring(x W2): apply the (linear) ring mean after the channel map;
+        # both channel maps in one matmul, [W1^T; W2^T] x, whose two halves are contiguous.
+        both = torch.addmm(torch.cat([b, b.new_zeros(c)])[:, None], torch.cat([w1, w2]), cols)
+        return both[:c].view(out_shape) + self.ring(both[c:].view(out_shape))
 
 
 # --------------------------------------------------------------------------------------------
