@@ -144,12 +144,6 @@ def resolve_motions(spec: str | Sequence[str]) -> list[str]:
 def _import_anny():
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     try:
-        import warp
-
-        warp.config.quiet = True  # no banner or "CUDA driver not found" lines on CPU machines
-    except (ImportError, AttributeError):
-        pass
-    try:
         import anny  # noqa: F401
         import torch  # noqa: F401
     except ImportError as exc:
