@@ -106,3 +106,21 @@ def test_console_script_runs_the_quick_demo():
                          capture_output=True, text=True, timeout=300, env=env)
     assert res.returncode == 0, res.stderr
     assert "exact" in res.stdout and "least squares" in res.stdout
+
+
+def test_sigterm_mid_write_leaves_no_output_and_no_temporary(tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "demo"
+    env = dict(os.environ, MESHSEQ_CACHE=str(tmp_path / "cache"), OMP_NUM_THREADS="1")
+    proc = subprocess.Popen([sys.executable, "-m", "meshseq", "demo", "--data", "limb", "--iterations", "100000",
+                             "-o", str(out), "--device", "cpu"], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not any(p.name.startswith(".tmp-") for p in tmp_path.iterdir()):
+        time.sleep(0.2)
+    assert any(p.name.startswith(".tmp-") for p in tmp_path.iterdir()), "the demo never started writing"
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=60) == 130
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cache"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 import warnings
 
@@ -50,6 +51,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     old_showwarning = warnings.showwarning
     warnings.showwarning = _show_warning
+    # SIGTERM unwinds like Ctrl-C, so temporary outputs are removed (atomic writes leave nothing)
+    old_term = signal.signal(signal.SIGTERM, _terminate) if _main_thread() else None
     try:
         status = args.func(args)
     except MeshseqError as err:
@@ -60,7 +63,19 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         warnings.showwarning = old_showwarning
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
     return int(status or 0)
+
+
+def _terminate(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
 
 
 def run() -> None:
