@@ -34,3 +34,19 @@ def test_demo_writes_pictures_model_and_tables(tmp_path):
         run_demo(out, iterations=1, data="limb", cache=tmp_path / "cache", device="cpu", log=lambda m: None)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cache", "demo"]
     assert np.isfinite(result["train_seconds"])
+
+
+def test_demo_on_the_body_data_fits_its_horizons(tmp_path, monkeypatch):
+    """The default data path: Anny sequences as long as the real default set (64 frames)."""
+    from meshseq.data import bodies
+
+    default = dict(bodies.DEFAULT_SET)
+    monkeypatch.setattr(bodies, "DEFAULT_SET", dict(default, subjects=default["subjects"][:1],
+                                                    motions=default["motions"][:2], vertices=800))
+    out = tmp_path / "demo"
+    result = run_demo(out, iterations=2, data="bodies", cache=tmp_path / "cache", device="cpu", log=lambda m: None)
+    assert result["dataset"].startswith(default["subjects"][0] + "_")
+    lo, hi = result["heldout"]
+    assert hi - lo >= 18  # 3 given frames + horizon 15
+    assert set(result["errors"]["ours"]) == {"u1", "u3"}
+    assert (out / "prediction.png").is_file() and (out / "completion.png").is_file()

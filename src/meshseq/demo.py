@@ -30,6 +30,7 @@ from meshseq.errors import MeshseqError
 class DemoData:
     specs: list[str]  # DATA arguments of the sequences trained on
     description: str
+    up: str = "y"  # the data's up axis, for pictures and the glTF export
 
 
 def default_cache_dir() -> Path:
@@ -50,7 +51,7 @@ def prepare_data(cache: Path, source: str, log) -> DemoData:
             with h5py.File(path, "r") as fh:
                 names = sorted(k for k in fh.keys() if k != "faces")
             return DemoData([f"{path}:{n}" for n in names],
-                            f"{len(names)} Anny body sequences (subjects x motions) from {path}")
+                            f"{len(names)} Anny body sequences (subjects x motions) from {path}", up="z")
         except (ImportError, MeshseqError, OSError, RuntimeError) as err:
             if source == "bodies":
                 raise MeshseqError(f"--data bodies: the body data cannot be made here: {err}") from err
@@ -81,8 +82,10 @@ def run_demo(out: Path, *, iterations: int = 300, data: str = "auto", force: boo
         run = tmp / "run"
         log(f"training {iterations} iterations (8 windows x 16 frames; latent 64) on {device} ...")
         t0 = time.perf_counter()
+        # hold out the last 40%: the body sequences have 64 frames, and 3 given frames plus a
+        # horizon of 15 need 18 held-out frames
         config = TrainConfig(iterations=iterations, window=16, batch=8, seed=seed, eval_every=0,
-                             checkpoint_every=max(50, iterations // 2), log_every=10)
+                             holdout=0.4, checkpoint_every=max(50, iterations // 2), log_every=10)
         train(load_training_data(demo_data.specs), run, config, model_options={"latent": 64},
               device=device, progress=True, log=lambda m: None)
         t_train = time.perf_counter() - t0
@@ -107,13 +110,14 @@ def run_demo(out: Path, *, iterations: int = 300, data: str = "auto", force: boo
         lin_v = synthesize.assemble_vertices(model, np.concatenate([given, linear]), anchors)
         truth = seq.vertices[lo:lo + 2 + n_pred]
         labels = ["ours (BD-LSTM)", "linear ACAP"]
-        img = render.film_strip([ours_v, lin_v], seq.faces, labels=labels, ground_truth=truth,
+        up = demo_data.up
+        img = render.film_strip([ours_v, lin_v], seq.faces, labels=labels, ground_truth=truth, up=up,
                                 first_frame=lo, title=f"prediction from 2 given frames ({seq.name})")
         render.save_image(tmp / "prediction.png", img)
         frames = render.animation_frames([ours_v, lin_v], seq.faces, labels=labels, ground_truth=truth,
-                                         first_frame=lo, tile_height=200)
+                                         first_frame=lo, tile_height=200, up=up)
         render.save_animation(tmp / "prediction.gif", frames, fps=12)
-        export.save_glb(tmp / "prediction.glb", ours_v, seq.faces, fps=24)
+        export.save_glb(tmp / "prediction.glb", ours_v, seq.faces, fps=24, up=up)
 
         gap = min(14, hi - lo - 2)
         a, b = lo, lo + gap + 1
@@ -123,7 +127,7 @@ def run_demo(out: Path, *, iterations: int = 300, data: str = "auto", force: boo
         comp_v = synthesize.assemble_vertices(model, comp, keys)
         lin_cv = synthesize.assemble_vertices(model, lin_c, keys)
         img = render.film_strip([comp_v, lin_cv], seq.faces, labels=["ours (stitched chains)", "linear ACAP"],
-                                ground_truth=seq.vertices[a:b + 1], first_frame=a,
+                                ground_truth=seq.vertices[a:b + 1], first_frame=a, up=up,
                                 title=f"completion between keyframes {a} and {b}")
         render.save_image(tmp / "completion.png", img)
 
