@@ -93,6 +93,7 @@ class Completion:
     frames: np.ndarray
     stitch: np.ndarray
     gap: np.ndarray
+    evaluations: int = 0  # roll-outs an optimiser used (CMA-ES); 0 for the chains
 
 
 def chain_states(model, samples: int, random_state: bool, generator: torch.Generator | None):
@@ -204,7 +205,7 @@ def complete_cma(model, key_a, key_b, n_between: int, max_evals: int = 400, max_
     gap = float(np.sqrt(((frames[0, -1] - np.asarray(key_b)) ** 2).mean()))
     frames[:, 0] = np.asarray(key_a)
     frames[:, -1] = np.asarray(key_b)
-    return Completion(frames, np.array([n - 1]), np.array([gap]))
+    return Completion(frames, np.array([n - 1]), np.array([gap]), evaluations=int(es.countevals))
 
 
 def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method: str = "ours",
