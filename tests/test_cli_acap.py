@@ -122,5 +122,8 @@ def test_sigterm_mid_write_leaves_no_output_and_no_temporary(tmp_path):
         time.sleep(0.2)
     assert any(p.name.startswith(".tmp-") for p in tmp_path.iterdir()), "the demo never started writing"
     proc.send_signal(signal.SIGTERM)
-    assert proc.wait(timeout=60) == 130
+    # 130: main() caught the interrupt; -SIGINT: it surfaced outside main() (seen once in CI, while
+    # the process was busy starting the training) and Python exited the SIGINT way. Either way the
+    # interrupt unwound the atomic write, which is what this test is about:
+    assert proc.wait(timeout=60) in (130, -signal.SIGINT)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cache"]
