@@ -39,3 +39,14 @@ def shared_file(name: str) -> Path:
 def shared_data() -> Path:
     """The shared data folder (``../shared/data``); the test fails if it is missing."""
     return shared_data_dir()
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Tiny models run fastest, and steadiest on a shared machine, on one torch thread."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -27,12 +27,7 @@ from meshseq.train import TrainConfig, TrainingData, train
 SMALL = {"latent": 16, "lstm_layers": 2}
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

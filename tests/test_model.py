@@ -12,12 +12,7 @@ from meshseq.mesh import Topology
 from meshseq.model import BDLSTM, MeshConv, ModelConfig, NeighborMean, count_step_flops
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -20,13 +20,7 @@ from meshseq.train import TrainConfig, TrainingData, load_training_data, train, 
 SMALL = {"latent": 16, "lstm_layers": 2}
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models run fastest, and steadiest on a shared machine, on one thread."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def limb_data(frames=40, seed=0):
