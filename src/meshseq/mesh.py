@@ -22,10 +22,7 @@ MAX_WEIGHT = 1e5
 
 def undirected_edges(faces: np.ndarray) -> np.ndarray:
     """Unique undirected edges ``(E, 2)`` with ``i < j``, sorted lexicographically."""
-    f = np.asarray(faces, dtype=np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    e.sort(axis=1)
-    return np.unique(e, axis=0)
+    return edge_face_counts(faces)[0]
 
 
 def edge_face_counts(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -84,9 +81,13 @@ class Topology:
         return Topology(f, n)
 
     @cached_property
+    def _edges_and_counts(self) -> tuple[np.ndarray, np.ndarray]:
+        return edge_face_counts(self.faces)
+
+    @cached_property
     def edges(self) -> np.ndarray:
         """Undirected edges ``(E, 2)``, ``i < j``."""
-        return undirected_edges(self.faces)
+        return self._edges_and_counts[0]
 
     @cached_property
     def directed_edges(self) -> np.ndarray:
@@ -188,11 +189,11 @@ class Topology:
 
     @cached_property
     def boundary_edge_count(self) -> int:
-        return int((edge_face_counts(self.faces)[1] == 1).sum())
+        return int((self._edges_and_counts[1] == 1).sum())
 
     @cached_property
     def nonmanifold_edge_count(self) -> int:
-        return int((edge_face_counts(self.faces)[1] > 2).sum())
+        return int((self._edges_and_counts[1] > 2).sum())
 
     @cached_property
     def unreferenced_vertices(self) -> np.ndarray:
