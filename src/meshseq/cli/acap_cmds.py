@@ -103,14 +103,13 @@ def cmd_features(args) -> int:
 
     from meshseq.acap import extract
     from meshseq.acap.features import component_offsets
-    from meshseq.io import atomic_output
+    from meshseq.io import atomic_output, check_output
     from meshseq.mesh import Topology
 
     out = Path(args.output)
     if out.suffix.lower() != ".npz":
         raise MeshseqError(f"{out}: -o/--output must end in .npz")
-    if out.exists() and not args.force:
-        raise MeshseqError(f"{out}: output file already exists; use --force to overwrite it")
+    check_output(out, force=args.force)
     seq = _load(args)
     ref = _reference(seq, args.reference_frame)
     feats = extract(seq.vertices, seq.faces, reference=ref, consistency=args.consistency,

@@ -181,7 +181,7 @@ def cmd_predict(args) -> int:
         gen = synthesize.predict(model, feats, args.frames)
     elif args.method == "vae_latent":
         all_feats = model.features(seq.vertices)
-        lo, hi = _heldout(model, seq, None) if _in_run(model, seq) else (args.start, args.start + args.given)
+        lo, hi = _recorded_heldout(model, seq) or (args.start, args.start + args.given)
         vae = _vae(model, args.run, seq, all_feats, (lo, hi), 1000)
         gen = baselines.vae_latent(vae, feats[None], args.frames)[0]
         print(f"note: {baselines.VAE_NOTE}")
@@ -198,12 +198,12 @@ def cmd_predict(args) -> int:
     return 0
 
 
-def _in_run(model, seq) -> bool:
+def _recorded_heldout(model, seq) -> tuple[int, int] | None:
+    """The held-out range the run recorded for this data set, or None if it is not one of its sets."""
     try:
-        _heldout(model, seq, None)
-        return True
+        return _heldout(model, seq, None)
     except MeshseqError:
-        return False
+        return None
 
 
 def cmd_complete(args) -> int:
