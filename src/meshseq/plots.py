@@ -29,6 +29,16 @@ def _new_figure(width: float = 6.4, height: float = 4.0):
     return fig
 
 
+def _finish(fig, ax, title: str | None):
+    """The common end of a line plot: y from 0, light grid, legend, optional title."""
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    if title:
+        ax.set_title(title)
+    return fig
+
+
 def figure_to_array(fig) -> np.ndarray:
     """The figure drawn as an ``(H, W, 3)`` uint8 RGB image."""
     fig.canvas.draw()
@@ -73,12 +83,7 @@ def error_vs_horizon(
             ax.fill_between(horizon, lo, hi, color=line.get_color(), alpha=0.15, linewidth=0)
     ax.set_xlabel("predicted frame")
     ax.set_ylabel(ylabel + (f" ({_scale_text(unit_scale)})" if unit_scale else ""))
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    if title:
-        ax.set_title(title)
-    return fig
+    return _finish(fig, ax, title)
 
 
 def feature_change(features: np.ndarray) -> np.ndarray:
@@ -115,12 +120,7 @@ def feature_change_curve(curves: Mapping[str, np.ndarray], *, title: str | None 
         ax.plot(np.arange(1, len(c) + 1), c, label=name)
     ax.set_xlabel("frame")
     ax.set_ylabel(r"$\|X_{t+1} - X_t\| \,/\, \|X_t\|$")
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    if title:
-        ax.set_title(title)
-    return fig
+    return _finish(fig, ax, title)
 
 
 def training_curves(
