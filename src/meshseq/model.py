@@ -59,6 +59,16 @@ class ModelConfig:
 
     ``latent`` is both the VAE latent width and the LSTM width (the decoder FC is the encoder FC
     transposed, so the LSTM output must have the latent width).
+
+    ``step_scale`` (None = the paper: ``X_t+1 = X_t + dX``): per-channel factors ``(C,)`` so that
+    ``X_t+1 = X_t + step_scale * dX``; training sets them to the spread of the data's frame-to-frame
+    changes, so the decoder works in units of a typical step (see ``meshseq.train``).
+
+    ``input_norm`` (False = the paper): the encoder sees ``(X - offset) / spread`` instead of
+    ``X``, with ``offset`` ``(V, C)`` the mean training frame and ``spread`` ``(C,)`` the RMS of the
+    training frames around it per channel (buffers ``input_offset``/``input_spread``, set by
+    training with ``set_input_norm`` and stored with the weights): the frames then differ by O(1)
+    at the encoder's input, not by the few hundredths they differ by in the scaled space.
     """
 
     n_vertices: int
@@ -69,6 +79,9 @@ class ModelConfig:
     variant: str = "bd"
     conv_impl: str = "sparse"
     init_state: float = 0.1
+    step_scale: list[float] | None = None
+    input_norm: bool = False
+
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -78,6 +91,10 @@ class ModelConfig:
         for name in ("n_vertices", "channels", "conv_layers", "latent", "lstm_layers"):
             if int(getattr(self, name)) < 1:
                 raise MeshseqError(f"model option {name}={getattr(self, name)} must be at least 1")
+        if self.step_scale is not None:
+            self.step_scale = [float(v) for v in self.step_scale]
+            if len(self.step_scale) != self.channels or not all(v > 0 for v in self.step_scale):
+                raise MeshseqError(f"model option step_scale: expected {self.channels} positive numbers")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -340,6 +357,23 @@ class BDLSTM(nn.Module):
         self.dec_conv_bias = nn.ParameterList(nn.Parameter(torch.zeros(C)) for _ in range(config.conv_layers))
         self.lstm = nn.LSTM(L, L, config.lstm_layers)
         self.lstm_backward = nn.LSTM(L, L, config.lstm_layers) if config.variant == "std-bd" else None
+        scale = torch.ones(C) if config.step_scale is None else torch.tensor(config.step_scale)
+        self.register_buffer("step_scale", scale.view(C, 1, 1), persistent=False)  # from the config
+        if config.input_norm:  # channel-major (C, V, 1) and (C, 1, 1); stored with the weights
+            self.register_buffer("input_offset", torch.zeros(C, V, 1))
+            self.register_buffer("input_spread", torch.ones(C, 1, 1))
+
+    def set_input_norm(self, frames: np.ndarray) -> None:
+        """Fit the encoder's input normalisation on training frames ``(T, V, C)`` (scaled)."""
+        if not self.config.input_norm:
+            raise ValueError("set_input_norm: the model was built with input_norm=False")
+        x = np.asarray(frames, dtype=np.float64)
+        offset = x.mean(axis=0)  # (V, C)
+        rms = np.sqrt(np.square(x - offset).mean(axis=(0, 1)))  # (C,)
+        rms = np.maximum(rms, 1e-3 * max(float(rms.max()), 1e-12))
+        with torch.no_grad():
+            self.input_offset.copy_(torch.from_numpy(offset.T[:, :, None]).to(self.input_offset))
+            self.input_spread.copy_(torch.from_numpy(rms[:, None, None]).to(self.input_spread))
 
     def _fc_ops(self, deferred: bool = False) -> _FC:
         return _FC(self, deferred and torch.is_grad_enabled() and self.fc.weight.requires_grad)
@@ -348,6 +382,8 @@ class BDLSTM(nn.Module):
 
     def _encode_cm(self, x: torch.Tensor, fc: _FC) -> tuple[torch.Tensor, torch.Tensor]:
         """``(C, V, B)`` -> ``(mu, logvar)`` ``(B, L)``."""
+        if self.config.input_norm:
+            x = (x - self.input_offset) / self.input_spread
         for conv in self.convs:
             x = torch.tanh(conv(x))
         e = fc.encode(x.reshape(-1, x.shape[-1]))
@@ -368,7 +404,10 @@ class BDLSTM(nn.Module):
         mu, logvar = self._encode_cm(x, fc)
         z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         h, state = self._lstm(z, state, n_forward)
-        return state, x + self._decode_cm(h, fc), mu, logvar
+        dx = self._decode_cm(h, fc)
+        if self.config.step_scale is not None:
+            dx = dx * self.step_scale
+        return state, x + dx, mu, logvar
 
     # -- public, batch-major ----------------------------------------------------------------------
 
@@ -437,21 +476,40 @@ class BDLSTM(nn.Module):
         empty = first.new_zeros(0, first.shape[0], self.config.latent)
         return out, empty, empty, state
 
-    def forward(self, windows: torch.Tensor, sample: bool = True) -> dict:
+    def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1) -> dict:
         """Both chains over ground-truth windows ``(B, n, V, C)`` in one batched pass.
+
+        ``given`` (the paper: 1): each chain is fed its first ``given`` ground-truth frames
+        (teacher-forced warm-up, as ``predict`` does with U given frames), then runs free. The
+        outputs after a true frame are one-step predictions; every output counts in the loss.
 
         Returns a dict with ``forward`` ``(B, n, V, C)`` (S^f_1..S^f_n, S^f_1 = X_1), ``backward``
         ``(B, n, V, C)`` in the backward chain's own order (S^b_1 = X_n, ..., S^b_n ~ X_1; None for
         ``uni``), ``mu`` and ``logvar`` ``(n - 1, B or 2B, L)``.
         """
         B, n = windows.shape[:2]
+        given = max(1, min(int(given), n))
         if self.config.variant == "uni":
+            chains, n_forward = windows, None
             state = self.initial_state(B, 0, windows.device, windows.dtype)
-            frames, mu, logvar, _ = self.rollout(windows[:, 0], n - 1, state, sample=sample)
+        else:
+            chains, n_forward = torch.cat([windows, windows.flip(1)]), B  # forward, then backward
+            state = self.initial_state(B, B, windows.device, windows.dtype)
+        outs, mus, logvars = [chains[:, :1]], [], []
+        for i in range(given - 1):  # teacher-forced warm-up: one step from each true frame
+            frames, mu, logvar, state = self.rollout(chains[:, i], 1, state, sample=sample, n_forward=n_forward)
+            outs.append(frames[:, 1:])
+            mus.append(mu)
+            logvars.append(logvar)
+        frames, mu, logvar, _ = self.rollout(chains[:, given - 1], n - given, state, sample=sample,
+                                             n_forward=n_forward)
+        outs.append(frames[:, 1:])
+        mus.append(mu)
+        logvars.append(logvar)
+        frames = torch.cat(outs, 1) if len(outs) > 1 else outs[0]
+        mu, logvar = torch.cat(mus), torch.cat(logvars)
+        if self.config.variant == "uni":
             return {"forward": frames, "backward": None, "mu": mu, "logvar": logvar}
-        first = torch.cat([windows[:, 0], windows[:, -1]])  # forward chains, then backward chains
-        state = self.initial_state(B, B, windows.device, windows.dtype)
-        frames, mu, logvar, _ = self.rollout(first, n - 1, state, sample=sample, n_forward=B)
         return {"forward": frames[:B], "backward": frames[B:], "mu": mu, "logvar": logvar}
 
     def weight_parameters(self) -> list[torch.Tensor]:

@@ -47,7 +47,19 @@ from meshseq.errors import MeshseqError
 from meshseq.mesh import Topology, topology_hash
 from meshseq.model import BDLSTM, ModelConfig
 
-METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "heldout_rec", "heldout_bd")
+METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "latent_spread", "heldout_rec",
+                 "heldout_bd")
+
+
+STEP_SCALES = ("none", "data")
+
+#: Named training recipes: option values for TrainConfig ("train") and ModelConfig ("model").
+#: ``paper`` is the paper's recipe read literally (method.md 3).
+RECIPES = {
+    "paper": {"train": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "given": 1, "step_scale": "none"},
+              "model": {}},
+}
+RECIPES["default"] = RECIPES["paper"]
 
 
 @dataclass
@@ -68,6 +80,10 @@ class TrainConfig:
     holdout_at: str = "end"
     scaling: str = "two-group"
     consistency: str = "temporal"
+    given: int = 1
+    step_scale: str = "none"
+    input_norm: bool = False
+    sample: bool = True
     eval_every: int = 100
     checkpoint_every: int = 500
     log_every: int = 10
@@ -85,6 +101,10 @@ class TrainConfig:
                 raise MeshseqError(f"loss weight {name}={getattr(self, name)} must be >= 0")
         if not float(self.lr) > 0:
             raise MeshseqError(f"--lr {self.lr}: expected a positive number")
+        if not 1 <= int(self.given) < int(self.window):
+            raise MeshseqError(f"--given {self.given}: expected 1 <= given < --window ({self.window})")
+        if self.step_scale not in STEP_SCALES:
+            raise MeshseqError(f"--step-scale {self.step_scale!r}: expected one of {', '.join(STEP_SCALES)}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -119,7 +139,17 @@ def window_losses(out: dict, windows: torch.Tensor) -> dict:
         rec = rec + frame_error(bwd[:, 1:], windows.flip(1)[:, 1:]).mean()
         bd = frame_error(fwd, bwd.flip(1)).mean()
     kl = kl_divergence(out["mu"], out["logvar"]) if out["mu"].numel() else fwd.new_zeros(())
-    return {"rec": rec, "bd": bd, "kl": kl}
+    return {"rec": rec, "bd": bd, "kl": kl, "latent_spread": latent_spread(out["mu"])}
+
+
+def latent_spread(mu: torch.Tensor) -> torch.Tensor:
+    """How much the latent mean varies with the frame: the standard deviation of ``mu``
+    ``(..., L)`` over all frames and chains, averaged over the latent dimensions (detached).
+
+    Near 0 (next to the prior's 1), z carries nothing about the frame: the latent has collapsed.
+    """
+    m = mu.detach().reshape(-1, mu.shape[-1])
+    return m.std(0).mean() if m.shape[0] > 1 else m.new_zeros(())
 
 
 class WindowLoss(nn.Module):
@@ -134,10 +164,10 @@ class WindowLoss(nn.Module):
         self.model = model
         self.weights = {"rec": config.w_rec, "bd": config.w_bd, "kl": config.w_kl, "l2": config.w_l2}
 
-    def forward(self, windows: torch.Tensor, sample: bool = True):
-        terms = window_losses(self.model(windows, sample=sample), windows)
+    def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1):
+        terms = window_losses(self.model(windows, sample=sample, given=given), windows)
         terms["l2"] = sum(p.square().sum() for p in self.model.weight_parameters())
-        total = sum(self.weights[k] * v for k, v in terms.items() if self.weights[k] != 0)
+        total = sum(self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) != 0)
         return total, {k: v.detach() for k, v in terms.items()}
 
 
@@ -188,6 +218,27 @@ def load_training_data(specs: list[str], consistency: str = "temporal") -> Train
     reference = first.vertices[0].copy()
     feats = [acap.extract(s.vertices, s.faces, reference=reference, consistency=consistency) for s in seqs]
     return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference)
+
+
+def step_spread(scaled: list[np.ndarray], splits: list[Split], stride: int = 1) -> np.ndarray:
+    """Root mean square per channel ``(C,)`` of the frame-to-frame changes ``X_{t+stride} - X_t`` of
+    scaled features ``[(T_d, V, C)]`` inside the training segments (the ``data`` step scale).
+
+    Channels that never change get the mean of the others (or 1), so every factor is positive.
+    """
+    sums, count = 0.0, 0
+    for x, split in zip(scaled, splits):
+        for a, b in split.train:
+            seg = np.asarray(x[a:b], dtype=np.float64)
+            if len(seg) > stride:
+                d = seg[stride:] - seg[:-stride]
+                sums = sums + np.square(d).sum(axis=(0, 1))
+                count += d.shape[0] * d.shape[1]
+    if count == 0:
+        raise MeshseqError(f"--step-scale data: no training segment is longer than --stride {stride}")
+    rms = np.sqrt(np.asarray(sums) / count)
+    good = rms > 1e-8
+    return np.where(good, rms, rms[good].mean() if good.any() else 1.0)
 
 
 def resolve_device(device: str) -> torch.device:
@@ -384,6 +435,10 @@ def train(
         if len(train_feats) == 0:
             raise MeshseqError(f"--holdout {config.holdout}: leaves no training frames")
         scaling = Scaling.fit(train_feats, mode=config.scaling)
+        model_config.input_norm = bool(config.input_norm)
+        if config.step_scale == "data":
+            spread = step_spread([scaling.apply(f) for f in data.features], splits, config.stride)
+            model_config.step_scale = [float(v) for v in spread]
 
     if config.batch % dist_info.world:
         raise MeshseqError(f"--batch {config.batch} must be a multiple of the number of processes ({dist_info.world})")
@@ -395,7 +450,10 @@ def train(
     torch.manual_seed(config.seed)
     random.seed(config.seed)
     np_rng = np.random.default_rng(config.seed)
-    model = BDLSTM(model_config, topo).to(dev)
+    model = BDLSTM(model_config, topo)
+    if model_config.input_norm and found is None:
+        model.set_input_norm(np.concatenate([scaling.apply(f[s.train_frames()]) for f, s in zip(data.features, splits)]))
+    model = model.to(dev)
     names = [n for n, _ in model.named_parameters()]
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(0.9, 0.999))
     start = 0
@@ -464,6 +522,7 @@ def train(
     last: dict = {"iteration": start, "checkpoint": str(found) if found else None, "loss": None,
                   "heldout_rec": None}
     t0 = time.perf_counter()
+    collapse_warned = False
     try:
         if bar is not None:
             bar.start()
@@ -471,8 +530,9 @@ def train(
         for it in range(start + 1, config.iterations + 1):
             rows = sampler.sample(np_rng, config.batch)[lo:hi]
             windows = frames[torch.from_numpy(rows).to(dev)]
+            given = 1 if config.given <= 1 else int(np_rng.integers(1, config.given + 1))
             optimizer.zero_grad(set_to_none=True)
-            total, terms = objective(windows)
+            total, terms = objective(windows, sample=config.sample, given=given)
             total.backward()
             optimizer.step()
 
@@ -486,6 +546,11 @@ def train(
                 row = row or {"iteration": it, "seconds": round(time.perf_counter() - t0, 3)}
                 row.update(evaluate())
                 last["heldout_rec"] = row.get("heldout_rec")
+                if not collapse_warned and it >= COLLAPSE_AFTER and "latent_spread" in row:
+                    message = collapse_warning(row.get("kl"), row["latent_spread"], config.w_kl)
+                    if message:
+                        log(f"warning at iteration {it}: {message}")
+                        collapse_warned = True
             if row is not None:
                 metrics.write(row)
                 if bar is not None:
@@ -511,8 +576,26 @@ def train(
     return last
 
 
+#: iterations before the collapse check starts (the latent needs a few hundred to organise)
+COLLAPSE_AFTER = 200
+
+
+def collapse_warning(kl: float | None, spread: float, w_kl: float) -> str | None:
+    """A one-line warning if the latent has collapsed to the prior, else None.
+
+    Collapse: the latent mean hardly varies with the frame (``spread`` < 0.01, against the
+    prior's unit spread) or, with a KL term, the KL is below 0.01 nats: z then tells the LSTM
+    nothing about the current frame and roll-outs freeze.
+    """
+    if spread < 1e-2 or (w_kl > 0 and kl is not None and kl < 1e-2):
+        return (f"the latent has collapsed to the prior (KL {0.0 if kl is None else kl:.3g} nats, "
+                f"latent spread {spread:.3g}): z carries little about the frame and roll-outs will "
+                "freeze; the paper's recipe does this (L_2 shrinks the tied FC), see --recipe")
+    return None
+
+
 def _terms_text(row: dict) -> str:
-    keys = ("loss", "rec", "bd", "kl", "l2", "heldout_rec")
+    keys = ("loss", "rec", "bd", "kl", "l2", "latent_spread", "heldout_rec")
     return " ".join(f"{k}={row[k]:.4g}" for k in keys if row.get(k) is not None)
 
 

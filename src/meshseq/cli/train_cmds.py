@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+#: the names of meshseq.train.RECIPES (kept here so that --help does not import torch)
+RECIPE_NAMES = ("default", "paper")
+
 
 def register(sub) -> None:
     """Add this module's sub-commands to the ``meshseq`` parser's ``sub`` (argparse subparsers)."""
@@ -40,12 +43,20 @@ def register(sub) -> None:
     m.add_argument("--conv-layers", type=int, default=3, help="mesh convolution layers (9 -> 9, tanh)")
     m.add_argument("--conv", choices=("sparse", "gather"), default="sparse",
                    help="1-ring mean by a sparse matrix or a padded gather (sparse measured faster)")
-    l = p.add_argument_group("loss and optimiser")
+    l = p.add_argument_group("recipe, loss and optimiser (unset options come from --recipe)")
+    l.add_argument("--recipe", choices=sorted(RECIPE_NAMES), default="default",
+                   help="default: meshseq's measured recipe (see docs/results.md); paper: the paper's "
+                   "literal recipe (its L_2 collapses the latent and roll-outs freeze)")
     l.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
-    l.add_argument("--w-rec", type=float, default=1.0, help="weight of L_rec")
-    l.add_argument("--w-bd", type=float, default=0.5, help="weight of L_bd (ignored by --variant uni)")
-    l.add_argument("--w-kl", type=float, default=0.1, help="weight of L_KL")
-    l.add_argument("--w-l2", type=float, default=0.1, help="weight of L_2 (sum of squared weights)")
+    l.add_argument("--w-rec", type=float, default=None, help="weight of L_rec")
+    l.add_argument("--w-bd", type=float, default=None, help="weight of L_bd (ignored by --variant uni)")
+    l.add_argument("--w-kl", type=float, default=None, help="weight of L_KL")
+    l.add_argument("--w-l2", type=float, default=None, help="weight of L_2 (sum of squared weights)")
+    l.add_argument("--given", type=int, default=None, help="teacher-forced first frames per chain: "
+                   "each iteration draws 1..GIVEN (1 = the paper's free-running chains)")
+    l.add_argument("--step-scale", choices=("none", "data"), default=None,
+                   help="none: X' = X + dX (the paper); data: X' = X + s dX with s the RMS frame-to-frame "
+                   "change of each channel in the training data")
     l.add_argument("--no-kl", action="store_true", help="drop L_KL (paper Table 1 ablation)")
     l.add_argument("--no-l2", action="store_true", help="drop L_2 (paper Fig. 3 ablation)")
     d = p.add_argument_group("data")
@@ -74,12 +85,21 @@ def _train(args) -> int:
     if out.is_dir() and any(out.iterdir()) and not (args.resume or args.force):
         raise MeshseqError(f"--out {out}: already exists and is not empty (use --resume to continue it "
                            "or --force to start over)")
+    from meshseq.train import RECIPES
+
+    recipe = dict(RECIPES[args.recipe]["train"])
+    for name in ("w_rec", "w_bd", "w_kl", "w_l2", "given", "step_scale"):
+        if getattr(args, name) is not None:
+            recipe[name] = getattr(args, name)
+    if args.no_kl:
+        recipe["w_kl"] = 0.0
+    if args.no_l2:
+        recipe["w_l2"] = 0.0
     config = TrainConfig(
         iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride, seed=args.seed,
-        lr=args.lr, w_rec=args.w_rec, w_bd=args.w_bd, w_kl=0.0 if args.no_kl else args.w_kl,
-        w_l2=0.0 if args.no_l2 else args.w_l2, holdout=args.holdout, holdout_at=args.holdout_at,
+        lr=args.lr, holdout=args.holdout, holdout_at=args.holdout_at,
         scaling=args.scaling, consistency=args.consistency, eval_every=args.eval_every,
-        checkpoint_every=args.checkpoint_every, log_every=args.log_every, keep=args.keep,
+        checkpoint_every=args.checkpoint_every, log_every=args.log_every, keep=args.keep, **recipe,
     )
     if args.threads is not None:
         if args.threads < 1:

@@ -1,0 +1,261 @@
+"""Controlled training runs for the recipe study (docs/results.md, "Why the model froze").
+
+One run = one recipe (``--recipe``, plus ``--set key=value`` overrides of training options)
+on one data collection, with the seed and budget fixed. The evaluation frames of the paper's
+protocol (the last 20% of every sequence) are never touched: every sequence is cut to its first
+80% (the protocol's training part), and the run holds out the last ``--val`` of THAT as a
+validation block. Every ``--every`` iterations a checkpoint is evaluated on the validation
+blocks, giving learning curves of:
+
+- prediction error (x 1e-4 of the data's units, and per bounding-box diagonal) at horizons 5, 10,
+  15 after u = 1 and u = 3 given frames, centroid-aligned and rigidly aligned, for ours and the
+  baselines zero velocity and linear ACAP extrapolation (flat lines: they do not train);
+- KL (nats, summed over the latent) and the latent spread (std of mu over frames) from the
+  training metrics;
+- motion level: the mean relative feature change of 50 generated frames (paper Fig. 3) over
+  the ground truth's level (1.0 = moves like the data, 0 = frozen).
+
+    python benchmarks/recipe_study.py --data bodies --recipe paper --iterations 600 --every 100 \\
+        --out /tmp/study --name paper
+    python benchmarks/recipe_study.py --plot /tmp/study/*.json -o docs/img/study_bodies.png
+
+``--data``: ``bodies`` (``BODIES`` file: every sequence of a ``meshseq make-bodies`` HDF5),
+``pcow``/``crane``/``horse-gallop`` (../shared/data), or paths/specs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = Path(os.environ.get("MESHSEQ_SHARED_DATA", ROOT.parent / "shared" / "data"))
+PROTOCOL_TRAIN = 0.8  # the paper's protocol holds out the last 20%: never looked at here
+
+
+def data_specs(data: list[str], bodies: str | None) -> list[str]:
+    specs = []
+    for d in data:
+        if d == "bodies":
+            import h5py
+
+            if not bodies:
+                raise SystemExit("--data bodies needs --bodies FILE.h5 (meshseq make-bodies)")
+            with h5py.File(bodies, "r") as fh:
+                specs += [f"{bodies}:{k}" for k in sorted(fh.keys()) if k != "faces"]
+        elif (SHARED / f"{d}.npz").is_file():
+            specs.append(str(SHARED / f"{d}.npz"))
+        else:
+            specs.append(d)
+    return specs
+
+
+def development_data(specs: list[str]):
+    """Features and vertices of every sequence cut to its first 80% (the protocol's training part)."""
+    from meshseq.io import load_sequence
+    from meshseq.train import load_training_data
+
+    full = load_training_data(specs)
+    verts = []
+    for i, spec in enumerate(specs):
+        v = load_sequence(spec).vertices.astype(np.float64)
+        n = int(round(PROTOCOL_TRAIN * len(v)))
+        full.features[i] = full.features[i][:n]
+        verts.append(v[:n])
+    return full, verts
+
+
+def parse_sets(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        if value.lower() in ("true", "false"):
+            out[key] = value.lower() == "true"
+            continue
+        for cast in (int, float):
+            try:
+                out[key] = cast(value)
+                break
+            except ValueError:
+                continue
+        else:
+            out[key] = value
+    return out
+
+
+def evaluate_checkpoint(path: Path, verts: list[np.ndarray], feats_raw: list[np.ndarray], splits,
+                        horizons=(5, 10, 15), givens=(1, 3), motion_frames: int = 50) -> dict:
+    """Validation metrics of one checkpoint, averaged over sequences (weighted by their starts)."""
+    import meshseq
+    from meshseq.evaluate import feature_change, prediction_errors, prediction_starts
+
+    model = meshseq.load(path)
+    methods = ["ours", "zero_velocity", "linear_acap"]
+    acc: dict = {}
+    motion, truth_level = [], []
+    for v, f, split in zip(verts, feats_raw, splits):
+        lo, hi = split.heldout
+        scaled = model.scaling.apply(f).astype(np.float32)
+        diag = float(np.linalg.norm(v[0].max(0) - v[0].min(0)))
+        for u in givens:
+            try:
+                res = prediction_errors(model, v, scaled, lo, hi, u, list(horizons), methods)
+            except meshseq.MeshseqError:
+                continue
+            for m, r in res.items():
+                for key in ("centroid", "rigid"):
+                    for h in horizons:
+                        k = (m, u, key, h)
+                        e = r[key][str(h)]
+                        a = acc.setdefault(k, [0.0, 0.0, 0])
+                        a[0] += e * r["starts"]
+                        a[1] += e * 1e-4 / diag * r["starts"]
+                        a[2] += r["starts"]
+        starts = prediction_starts(lo, hi, 1, 1)
+        if len(starts):
+            fc = feature_change(model, scaled, starts, 1, motion_frames, ["ours"])
+            motion.append(float(np.mean(fc["ours"])))
+            seg = f[lo:hi]
+            from meshseq.plots import feature_change as rel
+
+            truth_level.append(float(rel(seg).mean()))
+    errors = {}
+    for (m, u, key, h), (e, ed, n) in acc.items():
+        errors.setdefault(m, {}).setdefault(f"u{u}", {}).setdefault(key, {})[str(h)] = e / n
+        errors[m][f"u{u}"].setdefault(key + "_per_diagonal", {})[str(h)] = ed / n
+    return {"iteration": model.iteration, "errors": errors,
+            "motion": float(np.mean(motion)) if motion else None,
+            "truth_motion": float(np.mean(truth_level)) if truth_level else None}
+
+
+def read_metrics(run: Path) -> dict:
+    rows = {}
+    with open(run / "metrics.csv", newline="") as fh:
+        for r in csv.DictReader(fh):
+            rows[int(r["iteration"])] = r
+    return rows
+
+
+def run_study(args) -> dict:
+    import torch
+
+    from meshseq import checkpoint as ckpt
+    from meshseq.data.windows import Split
+    from meshseq.train import RECIPES, TrainConfig, train
+
+    torch.set_num_threads(args.threads)
+    specs = data_specs(args.data, args.bodies)
+    data, verts = development_data(specs)
+    options = dict(RECIPES[args.recipe]["train"])
+    model_options = dict(RECIPES[args.recipe]["model"])
+    sets = parse_sets(args.set)
+    for k, v in sets.items():
+        if k in ("latent", "lstm_layers", "conv_layers", "variant"):
+            model_options[k] = v
+        else:
+            options[k] = v
+    config = TrainConfig(iterations=args.iterations, window=args.window, batch=args.batch, seed=args.seed,
+                         holdout=args.val, eval_every=args.every, checkpoint_every=args.every, keep=10000,
+                         log_every=10, **options)
+    run = Path(args.out) / args.name
+    t0 = time.perf_counter()
+    train(data, run, config, model_options, device="cpu", resume=True, progress=not args.quiet)
+    seconds = time.perf_counter() - t0
+    metrics = read_metrics(run)
+    curve = []
+    for path in ckpt.list_checkpoints(run):
+        meta = json.loads((path / "model.json").read_text())
+        splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
+        point = evaluate_checkpoint(path, verts, data.features, splits)
+        row = metrics.get(point["iteration"], {})
+        for k in ("kl", "latent_spread", "rec", "l2", "heldout_rec"):
+            point[k] = float(row[k]) if row.get(k) not in (None, "") else None
+        curve.append(point)
+        e = point["errors"]
+        print(f"{args.name} it {point['iteration']:5d}  h15 u1 ours {e['ours']['u1']['centroid']['15']:8.1f} "
+              f"zv {e['zero_velocity']['u1']['centroid']['15']:8.1f}  u3 ours {e['ours']['u3']['centroid']['15']:8.1f} "
+              f"lin {e['linear_acap']['u3']['centroid']['15']:8.1f}  rigid u3 ours {e['ours']['u3']['rigid']['15']:8.1f} "
+              f"zv {e['zero_velocity']['u3']['rigid']['15']:8.1f}  KL {point['kl']}  spread {point['latent_spread']}  "
+              f"motion {point['motion']:.4f}/{point['truth_motion']:.4f}", flush=True)
+    result = {"name": args.name, "recipe": args.recipe, "set": sets, "data": specs, "train": config.to_dict(),
+              "model": model_options, "seconds": seconds, "curve": curve,
+              "command": "python benchmarks/recipe_study.py " + " ".join(args.argv)}
+    out = Path(args.out) / f"{args.name}.json"
+    out.write_text(json.dumps(result, indent=1))
+    return result
+
+
+def plot(files: list[str], output: str, given: str = "u3", horizon: str = "15") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [json.loads(Path(f).read_text()) for f in files]
+    fig, axes = plt.subplots(1, 4, figsize=(19, 4.2))
+    for r in runs:
+        it = [p["iteration"] for p in r["curve"]]
+        for ax, key in zip(axes[:2], ("centroid", "rigid")):
+            ax.plot(it, [p["errors"]["ours"][given][key][horizon] for p in r["curve"]], marker="o", label=r["name"])
+        axes[2].plot(it, [max(p["kl"] or 0, 1e-4) for p in r["curve"]], marker="o", label=r["name"])
+        axes[3].plot(it, [p["motion"] / p["truth_motion"] for p in r["curve"]], marker="o", label=r["name"])
+    first = runs[0]["curve"][-1]["errors"]
+    for ax, key in zip(axes[:2], ("centroid", "rigid")):
+        for m, style in (("zero_velocity", "k--"), ("linear_acap", "k:")):
+            ax.axhline(first[m][given][key][horizon], color="k", ls=style[1:], label=m)
+        ax.set_title(f"validation error h{horizon} {given} ({key}), x1e-4")
+        ax.set_xlabel("iteration")
+    axes[2].set_yscale("log")
+    axes[2].set_title("KL (nats)")
+    axes[3].axhline(1.0, color="k", ls="--", label="ground truth")
+    axes[3].set_title("motion level / ground truth's")
+    for ax in axes:
+        ax.set_xlabel("iteration")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    axes[3].legend(fontsize=7)
+    fig.tight_layout()
+    tmp = Path(output).with_name(".tmp-" + Path(output).name)
+    fig.savefig(tmp, dpi=90, format="png")
+    os.replace(tmp, output)
+
+
+def main(argv=None) -> None:
+    import sys
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", nargs="+", default=["bodies"])
+    p.add_argument("--bodies", default=None, help="make-bodies HDF5 for --data bodies")
+    p.add_argument("--recipe", default="default")
+    p.add_argument("--set", nargs="*", default=[], help="training option overrides key=value")
+    p.add_argument("--name", default=None)
+    p.add_argument("--iterations", type=int, default=600)
+    p.add_argument("--every", type=int, default=100)
+    p.add_argument("--window", type=int, default=32)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--val", type=float, default=0.25, help="validation fraction of the training part")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--out", default="/tmp/meshseq-study")
+    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--plot", nargs="*", default=None, help="plot these result JSONs instead of training")
+    p.add_argument("-o", "--output", default=None, help="PNG for --plot")
+    p.add_argument("--given", default="u3")
+    args = p.parse_args(argv)
+    args.argv = argv
+    if args.plot is not None:
+        plot(args.plot, args.output or "study.png", args.given)
+        return
+    args.name = args.name or args.recipe
+    run_study(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,189 @@
+"""Training recipe: teacher-forced warm-up, the step scale, recipes and the collapse warning."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from meshseq import acap
+from meshseq.data.synthetic import twisting_limb
+from meshseq.data.windows import split_frames
+from meshseq.errors import MeshseqError
+from meshseq.mesh import Topology
+from meshseq.model import BDLSTM, ModelConfig
+from meshseq.train import (
+    RECIPES,
+    TrainConfig,
+    TrainingData,
+    collapse_warning,
+    latent_spread,
+    step_spread,
+    train,
+)
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+SMALL = {"latent": 16, "lstm_layers": 2}
+
+
+def limb():
+    seq = twisting_limb(frames=40, rings=10, segments=8, seed=0)
+    feats = acap.extract(seq.vertices, seq.faces)
+    return seq, feats
+
+
+def small_model(seq, variant="bd", step_scale=None, seed=0):
+    torch.manual_seed(seed)
+    cfg = ModelConfig(n_vertices=seq.n_vertices, variant=variant, step_scale=step_scale, **SMALL)
+    return BDLSTM(cfg, Topology.from_faces(seq.faces, seq.n_vertices))
+
+
+@pytest.mark.parametrize("variant", ["bd", "std-bd", "uni"])
+def test_given_frames_are_teacher_forced_then_the_chains_run_free(variant):
+    seq, feats = limb()
+    net = small_model(seq, variant).eval()
+    x = torch.from_numpy(acap.Scaling.fit(feats).apply(feats)).float()
+    windows = torch.stack([x[0:10], x[5:15]])  # (B=2, n=10, V, 9)
+    B, n, given = 2, 10, 3
+    with torch.no_grad():
+        out = net(windows, sample=False, given=given)
+        # the same by single steps: true frames 0..given-1 in, then the chain's own frames
+        nb = 0 if variant == "uni" else B
+        chains = windows if variant == "uni" else torch.cat([windows, windows.flip(1)])
+        state = net.initial_state(B, nb)
+        frames = [chains[:, 0]]
+        cur = chains[:, 0]
+        for t in range(n - 1):
+            inp = chains[:, t] if t < given else cur
+            state, cur, _, _ = net.step(state, inp, n_forward=B)
+            frames.append(cur)
+        ref = torch.stack(frames, 1)
+    torch.testing.assert_close(out["forward"], ref[:B], rtol=1e-5, atol=1e-6)
+    if variant != "uni":
+        torch.testing.assert_close(out["backward"], ref[B:], rtol=1e-5, atol=1e-6)
+    assert out["mu"].shape == (n - 1, len(chains), SMALL["latent"])
+    # given=1 is the paper's free-running chain, and differs from the warm-up
+    with torch.no_grad():
+        free = net(windows, sample=False, given=1)["forward"]
+    assert not torch.allclose(free[:, 3:], out["forward"][:, 3:])
+
+
+def test_step_scale_multiplies_the_decoded_change_per_channel():
+    seq, feats = limb()
+    plain = small_model(seq, step_scale=None).eval()
+    scale = [2.0] * 3 + [0.5] * 6
+    scaled = small_model(seq, step_scale=scale).eval()
+    scaled.load_state_dict(plain.state_dict())
+    x = torch.from_numpy(acap.Scaling.fit(feats).apply(feats[:2])).float()
+    with torch.no_grad():
+        s0 = plain.initial_state(2)
+        _, a, _, _ = plain.step(s0, x)
+        _, b, _, _ = scaled.step(s0, x)
+    torch.testing.assert_close(b - x, (a - x) * torch.tensor(scale), rtol=1e-5, atol=1e-7)
+    with pytest.raises(MeshseqError, match="step_scale"):
+        ModelConfig(n_vertices=5, step_scale=[1.0, 2.0])
+    with pytest.raises(MeshseqError, match="step_scale"):
+        ModelConfig(n_vertices=5, step_scale=[1.0] * 8 + [0.0])
+
+
+def test_step_spread_is_the_rms_change_inside_training_segments():
+    rng = np.random.default_rng(0)
+    T, V = 30, 4
+    steps = np.array([0.1, 0.2, 0.3, 0, 0, 0, 0, 0, 0.4])
+    x = np.cumsum(np.broadcast_to(steps, (T, V, 9)), axis=0) + 0 * rng.normal(size=(T, V, 9))
+    x[25:] += 100.0  # inside the held-out block: a jump there must not count
+    split = split_frames(T, 0.2)  # held out 24..29
+    rms = step_spread([x], [split])
+    np.testing.assert_allclose(rms[[0, 1, 2, 8]], [0.1, 0.2, 0.3, 0.4])
+    np.testing.assert_allclose(rms[3:8], np.mean([0.1, 0.2, 0.3, 0.4]))  # still channels: the mean
+    np.testing.assert_allclose(step_spread([x], [split], stride=2)[0], 0.2)
+
+
+def test_latent_spread_and_collapse_warning():
+    mu = torch.zeros(5, 4, 8)
+    assert float(latent_spread(mu)) == 0.0
+    assert collapse_warning(0.0, 0.0, 0.1) is not None
+    assert "collapsed" in collapse_warning(0.001, 0.5, 0.1)
+    assert collapse_warning(0.001, 0.5, 0.0) is None  # no KL term: the spread decides
+    alive = torch.randn(5, 4, 8, generator=torch.Generator().manual_seed(0))
+    assert 0.7 < float(latent_spread(alive)) < 1.3
+    assert collapse_warning(3.0, float(latent_spread(alive)), 0.1) is None
+
+
+def test_training_warns_when_the_latent_collapses(tmp_path, monkeypatch):
+    import meshseq.train as tr
+
+    seq, feats = limb()
+    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+    monkeypatch.setattr(tr, "COLLAPSE_AFTER", 0)
+    messages = []
+    # an overwhelming L_2 crushes the tied FC at once: the latent carries nothing
+    cfg = TrainConfig(iterations=20, window=8, batch=2, eval_every=10, log_every=10, checkpoint_every=0,
+                      w_l2=1e4, lr=1e-2, holdout=0.2)
+    train(data, tmp_path / "run", cfg, SMALL, progress=False, log=messages.append)
+    assert any("collapsed" in m for m in messages), messages
+    messages.clear()
+    cfg = TrainConfig(iterations=20, window=8, batch=2, eval_every=10, log_every=10, checkpoint_every=0,
+                      w_l2=0.0, w_kl=0.0, holdout=0.2)
+    train(data, tmp_path / "run2", cfg, SMALL, progress=False, log=messages.append)
+    assert not any("collapsed" in m for m in messages), messages
+
+
+def test_given_option_is_checked_and_recipes_are_known_options():
+    with pytest.raises(MeshseqError, match="--given"):
+        TrainConfig(given=0)
+    with pytest.raises(MeshseqError, match="--given"):
+        TrainConfig(window=8, given=8)
+    with pytest.raises(MeshseqError, match="--step-scale"):
+        TrainConfig(step_scale="big")
+    for name, recipe in RECIPES.items():
+        TrainConfig(**recipe["train"])  # every recipe is valid
+        assert set(recipe["model"]) <= {"latent", "lstm_layers", "conv_layers", "variant"}
+    assert RECIPES["paper"]["train"]["w_l2"] == 0.1 and RECIPES["paper"]["train"]["given"] == 1
+    assert RECIPES["paper"]["train"]["step_scale"] == "none"
+
+
+def test_step_scale_data_is_stored_and_reloaded(tmp_path):
+    import meshseq
+
+    seq, feats = limb()
+    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+    cfg = TrainConfig(iterations=2, window=8, batch=2, eval_every=0, checkpoint_every=0, step_scale="data", given=3)
+    train(data, tmp_path / "run", cfg, SMALL, progress=False, log=None)
+    model = meshseq.load(tmp_path / "run")
+    scale = model.config.step_scale
+    assert scale is not None and len(scale) == 9 and all(v > 0 for v in scale)
+    scaled = model.scaling.apply(feats)
+    split = split_frames(len(feats), 0.2)
+    np.testing.assert_allclose(scale, step_spread([scaled], [split]), rtol=1e-6)
+
+
+def test_cli_recipe_names_match_the_library():
+    from meshseq.cli.train_cmds import RECIPE_NAMES
+
+    assert set(RECIPE_NAMES) == set(RECIPES)
+
+
+def test_input_norm_standardises_the_encoder_input_and_is_stored(tmp_path):
+    import meshseq
+
+    seq, feats = limb()
+    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+    cfg = TrainConfig(iterations=2, window=8, batch=2, eval_every=0, checkpoint_every=0, input_norm=True)
+    train(data, tmp_path / "run", cfg, SMALL, progress=False, log=None)
+    model = meshseq.load(tmp_path / "run")
+    assert model.config.input_norm
+    scaled = model.scaling.apply(feats[:32])  # the training frames (20% held out)
+    offset = model.net.input_offset[:, :, 0].T.numpy()  # (V, 9)
+    np.testing.assert_allclose(offset, scaled.mean(0), rtol=1e-5, atol=1e-6)
+    z = (scaled - offset) / model.net.input_spread[:, 0, 0].numpy()
+    np.testing.assert_allclose(np.sqrt(np.square(z).mean(axis=(0, 1))), 1.0, rtol=1e-4)
+    # the encoder sees the normalised frames: equal to a plain encoder fed them by hand
+    x = torch.from_numpy(scaled[:3]).float()
+    plain = BDLSTM(ModelConfig(**{**model.config.to_dict(), "input_norm": False}),
+                   Topology.from_faces(seq.faces, seq.n_vertices))
+    plain.load_state_dict({k: v for k, v in model.net.state_dict().items() if not k.startswith("input_")})
+    with torch.no_grad():
+        mu_a, _ = model.net.encode(x)
+        mu_b, _ = plain.encode(torch.from_numpy(z[:3]).float())
+    torch.testing.assert_close(mu_a, mu_b, rtol=1e-4, atol=1e-5)
