@@ -46,7 +46,9 @@ def test_info_json(limb_npz, capsys):
     assert info["frames"] == 30 and info["vertices"] == 386 and info["faces"] == 768
     assert info["components"] == 1 and info["boundary_edges"] == 0 and info["degenerate_faces"] == 0
     assert info["diag"] > 1.0
-    assert info["spurious_jumps"] == 0 and info["vertex_steps"] == 29 * 386 and info["largest_step"] > 0
+    # 30 frames of 1.5 turns: the tip passes near the identity on the 2 pi shell, some jumps are forced
+    assert info["vertex_steps"] == 29 * 386 and info["largest_step"] >= info["largest_spurious_step"] > 0
+    assert 0 < info["spurious_jumps"] < 0.02 * info["vertex_steps"]
     assert main(["info", str(limb_npz), "--json", "--no-jumps"]) == 0
     assert "spurious_jumps" not in json.loads(capsys.readouterr().out)
 
