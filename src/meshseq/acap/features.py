@@ -97,7 +97,10 @@ def extract(
     if exact:
         from meshseq.acap.reconstruct import Reconstructor
 
-        grads = Reconstructor(ref, topo.faces).exact_gradients(op(v), v)
+        grads = np.empty(v.shape[:2] + (3, 3))
+        for start in range(0, len(v), FRAME_CHUNK):  # chunked like _pack_features: cache-friendly
+            grads[start:start + FRAME_CHUNK] = op(v[start:start + FRAME_CHUNK])
+        grads = Reconstructor(ref, topo.faces).exact_gradients(grads, v)
         return gradients_to_features(grads, topo, consistency)
     return _pack_features(lambda frames: op(v[frames]), len(v), topo, consistency)
 
