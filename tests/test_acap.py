@@ -212,3 +212,117 @@ def test_torch_reconstruction_matches_numpy_and_is_differentiable():
     assert np.abs(out.detach().numpy() - rec.solve(feats)).max() < 1e-10
     inp = x.detach()[:1].clone().requires_grad_()
     assert torch.autograd.gradcheck(module, (inp,), eps=1e-6, atol=1e-5, fast_mode=True)
+
+
+# ---- spurious 2 pi jumps in time (issue 11) ----
+
+RIGID_CASES = ("spin_turns", "precessing_spin", "through_pi", "noise_near_pi", "near_identity", "swing_back")
+
+
+@pytest.mark.parametrize("name", RIGID_CASES)
+def test_temporal_consistency_has_no_spurious_jumps_on_hard_rotation_paths(name):
+    from meshseq.acap.diagnostics import feature_jumps
+    from meshseq.data import rotation_cases
+
+    seq = getattr(rotation_cases, name)()
+    feats = extract(seq.vertices, seq.faces)
+    assert feature_jumps(feats)["spurious_jumps"] == 0
+    # still logs of the same rotations as the per-frame method
+    spatial = extract(seq.vertices, seq.faces, consistency="spatial")
+    assert np.abs(features_to_gradients(feats) - features_to_gradients(spatial)).max() < 1e-8
+
+
+def test_swing_back_breaks_the_greedy_pass_and_not_the_temporal_one():
+    """A one-frame swing of 2.4 rad leaves the greedy log on the 2 pi shell; passing near the
+    identity then costs it two 2 pi jumps per vertex."""
+    from meshseq.acap.diagnostics import feature_jumps
+    from meshseq.data.rotation_cases import swing_back
+
+    seq = swing_back()
+    greedy = feature_jumps(extract(seq.vertices, seq.faces, consistency="greedy"))
+    temporal = feature_jumps(extract(seq.vertices, seq.faces, consistency="temporal"))
+    assert greedy["spurious_jumps"] >= seq.n_vertices and greedy["largest_log_norm"] > 6.0
+    assert temporal["spurious_jumps"] == 0 and temporal["largest_log_norm"] < 3.0
+
+
+def test_spin_of_three_turns_accumulates_the_angle():
+    from meshseq.data.rotation_cases import spin_turns
+
+    seq = spin_turns(turns=3.0)
+    feats = extract(seq.vertices, seq.faces)
+    assert np.linalg.norm(feats[-1, :, :3], axis=-1) == pytest.approx(6 * np.pi, abs=1e-6)
+
+
+def _fewest_jumps_brute_force(logs_principal, m_range=4):
+    """Reference: per-vertex DP in plain Python over representatives theta + 2 pi m along the axis,
+    lexicographic (spurious jumps, sum of squared steps); frame 0 fixed at its log."""
+    from meshseq.acap.rotations import relative_angles
+
+    motion = relative_angles(logs_principal[:, None])[:, 0]
+    norms = np.linalg.norm(logs_principal, axis=-1)
+    axes = [r / n if n > 1e-6 else None for r, n in zip(logs_principal, norms)]
+    last = axes[0] if axes[0] is not None else np.array([1.0, 0.0, 0.0])
+    lines = []
+    for a, n in zip(axes, norms):
+        last = a if a is not None else last
+        lines.append((last, n if a is not None else 0.0))
+    states = {0: ((0, 0.0), lines[0][1] * lines[0][0])}
+    for t in range(1, len(lines)):
+        w, th = lines[t]
+        new = {}
+        for m in range(-m_range, m_range + 1):
+            r = (th + 2 * np.pi * m) * w
+            best = None
+            for (jumps, sq), prev in states.values():
+                d = np.linalg.norm(r - prev)
+                key = (jumps + int(d > np.pi and motion[t - 1] < np.pi / 2), sq + d * d)
+                best = key if best is None or key < best else best
+            new[m] = (best, r)
+        states = new
+    return min(k for k, _ in states.values())[0]
+
+
+def test_temporal_consistency_reaches_the_fewest_possible_jumps_on_a_fast_twist():
+    """Where jumps remain (a tip twisting 3 turns while bending: the rotation passes near the
+    identity on the 2 pi shell), no choice of branches does better: a brute-force reference agrees."""
+    from meshseq.acap.diagnostics import rotation_logs
+    from meshseq.acap.rotations import JUMP_MOTION, JUMP_STEP, relative_angles
+    from meshseq.data.synthetic import twisting_limb
+
+    seq = twisting_limb(frames=48, twist_turns=3.0)
+    logs = rotation_logs(extract(seq.vertices, seq.faces))
+    greedy = rotation_logs(extract(seq.vertices, seq.faces, consistency="greedy"))
+    principal = rotation_logs(extract(seq.vertices, seq.faces, consistency="spatial"))
+
+    def per_vertex(r):
+        step = np.linalg.norm(np.diff(r, axis=0), axis=-1)
+        return ((step > JUMP_STEP) & (relative_angles(r) < JUMP_MOTION)).sum(axis=0)
+
+    ours, before = per_vertex(logs), per_vertex(greedy)
+    assert ours.sum() < before.sum()
+    # the principal logs' own branch: wrap each to the ball of radius pi
+    n = np.linalg.norm(principal, axis=-1, keepdims=True)
+    wrapped = np.where(n > np.pi, principal * (1 - 2 * np.pi / np.where(n > 0, n, 1)), principal)
+    check = np.concatenate([np.flatnonzero(before > ours)[:6], np.flatnonzero(ours)[:6]])
+    for v in check:
+        assert ours[v] == _fewest_jumps_brute_force(wrapped[:, v]), v
+
+
+def test_jump_report_counts_a_planted_jump_and_rejects_bad_shapes():
+    from meshseq.acap.diagnostics import branch_jumps, feature_jumps
+    from meshseq.errors import MeshseqError
+
+    logs = np.zeros((5, 2, 3))
+    logs[:, 0, 2] = [0.1, 0.2, 0.3, 0.4, 0.5]
+    logs[:, 1, 2] = [3.0, 3.1, 3.2 - 2 * np.pi, 3.3 - 2 * np.pi, 3.4 - 2 * np.pi]  # same rotations, one jump
+    r = branch_jumps(logs)
+    assert r["spurious_jumps"] == 1 and r["spurious_jump_vertices"] == 1 and r["vertex_steps"] == 8
+    assert r["largest_step"] == pytest.approx(2 * np.pi - 0.1) and r["median_motion_at_jumps"] == pytest.approx(0.1)
+    logs[3, 0, 2] = 0.3 + 3.5  # a real 3.5 rad turn in one frame (and back) is motion, not a spurious jump
+    r = branch_jumps(logs)
+    assert r["spurious_jumps"] == 1 and r["largest_spurious_step"] == pytest.approx(2 * np.pi - 0.1)
+    for bad in (np.zeros((5, 3)), np.zeros((5, 2, 4)), np.full((2, 1, 3), np.nan)):
+        with pytest.raises(MeshseqError):
+            branch_jumps(bad)
+    with pytest.raises(MeshseqError):
+        feature_jumps(np.zeros((5, 2, 3)))

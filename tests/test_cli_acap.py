@@ -46,6 +46,28 @@ def test_info_json(limb_npz, capsys):
     assert info["frames"] == 30 and info["vertices"] == 386 and info["faces"] == 768
     assert info["components"] == 1 and info["boundary_edges"] == 0 and info["degenerate_faces"] == 0
     assert info["diag"] > 1.0
+    # 30 frames of 1.5 turns: the tip passes near the identity on the 2 pi shell, some jumps are forced
+    assert info["vertex_steps"] == 29 * 386 and info["largest_step"] >= info["largest_spurious_step"] > 0
+    assert 0 < info["spurious_jumps"] < 0.02 * info["vertex_steps"]
+    assert main(["info", str(limb_npz), "--json", "--no-jumps"]) == 0
+    assert "spurious_jumps" not in json.loads(capsys.readouterr().out)
+
+
+def test_features_json_reports_spurious_jumps_zero_after_and_some_before(tmp_path, capsys):
+    from meshseq.data.rotation_cases import swing_back
+
+    data = tmp_path / "swing.npz"
+    save_sequence(swing_back(), data)
+    counts = {}
+    for mode in ("greedy", "temporal"):
+        assert main(["features", str(data), "-o", str(tmp_path / f"{mode}.npz"), "--consistency", mode, "--json"]) == 0
+        r = json.loads(capsys.readouterr().out)
+        assert r["frames"] == 60 and r["consistency"] == mode
+        counts[mode] = r["spurious_jumps"]
+        assert r["largest_step"] >= r["largest_spurious_step"] >= 0
+    assert counts == {"greedy": 2 * 162, "temporal": 0}
+    assert main(["features", str(data), "-o", str(tmp_path / "plain.npz")]) == 0
+    assert "0 spurious 2 pi jumps" in capsys.readouterr().out
 
 
 def test_roundtrip_json_keys_and_accuracy(limb_npz, capsys):

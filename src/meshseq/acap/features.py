@@ -42,7 +42,7 @@ def gradients_to_features(
 ) -> np.ndarray:
     """ACAP features ``(T, V, 9)`` of deformation gradients ``(T, V, 3, 3)``.
 
-    Polar decomposition, axis-angle, rotation consistency (``temporal`` or ``spatial``), packing.
+    Polar decomposition, axis-angle, rotation consistency (one of ``CONSISTENCY_MODES``), packing.
     """
     g = np.asarray(gradients, dtype=np.float64)
     return _pack_features(lambda frames: g[frames], len(g), topology, consistency)
@@ -80,8 +80,10 @@ def extract(
     Args:
         reference: ``(V, 3)`` rest shape; default the first frame (whose features are then the
             identity feature).
-        consistency: ``temporal`` (default: each frame's rotation logs nearest the previous
-            frame's) or ``spatial`` (the reference code's per-frame BFS).
+        consistency: ``temporal`` (default: rotation logs continuous in time, with the fewest
+            spurious 2 pi jumps possible, see :mod:`meshseq.acap.rotations`), ``spatial`` (the
+            reference code's per-frame BFS) or ``greedy`` (each frame nearest the previous; the
+            earlier temporal pass, kept for comparison).
         normal_row: include the normal term in the gradient fit (method.md 1.2).
         exact: correct the least-squares gradients by the minimum-norm change that makes the
             reconstruction return the input (method.md 2.5).
@@ -95,7 +97,10 @@ def extract(
     if exact:
         from meshseq.acap.reconstruct import Reconstructor
 
-        grads = Reconstructor(ref, topo.faces).exact_gradients(op(v), v)
+        grads = np.empty(v.shape[:2] + (3, 3))
+        for start in range(0, len(v), FRAME_CHUNK):  # chunked like _pack_features: cache-friendly
+            grads[start:start + FRAME_CHUNK] = op(v[start:start + FRAME_CHUNK])
+        grads = Reconstructor(ref, topo.faces).exact_gradients(grads, v)
         return gradients_to_features(grads, topo, consistency)
     return _pack_features(lambda frames: op(v[frames]), len(v), topo, consistency)
 

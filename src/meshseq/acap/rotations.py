@@ -4,6 +4,17 @@ A rotation's axis-angle (w, theta) is ambiguous: (-w, 2 pi - theta) and every th
 give the same matrix. ACAP picks, per vertex, the representative that agrees with its
 neighbours (spatial BFS of the reference code) and, for sequences, with the same vertex in the
 previous frame (temporal; removes 2 pi jumps in time that a per-shape method cannot).
+
+Why a greedy temporal pass is not enough: all representatives of one rotation lie on one line
+(``(theta + 2 pi m) w``, 2 pi apart), so at most one of them is within pi of the previous frame's
+log and the greedy nearest choice is the only jump-free continuation while one exists. But near
+``|r| = 2 pi k`` (k >= 1) the exponential map squeezes directions across ``r`` by
+``2 |sin(|r|/2)| / |r|``: once a vertex's log has turned past pi, a small rotation change near the
+identity needs a log step of several radians, and none within pi may exist. The greedy pass then
+also commits, at frames where the rotation truly jumps (>= pi/2 in one frame), to whichever branch
+is nearest, which can leave the log on an outer shell for later. :func:`temporal` therefore keeps
+the greedy result where it has no step above pi and, on the other vertices, picks the branches of
+all frames together (dynamic programming) for the fewest spurious jumps, then the smallest steps.
 """
 
 from __future__ import annotations
@@ -16,8 +27,15 @@ from meshseq.mesh import Topology
 NO_ROTATION = 1e-6
 TWO_PI = 2.0 * np.pi
 
-#: ``spatial``: BFS per frame; ``temporal``: BFS on the first frame, then each frame nearest the previous.
-CONSISTENCY_MODES = ("temporal", "spatial")
+#: ``temporal``: BFS on the first frame, then the branches over time with the fewest spurious jumps
+#: (greedy nearest-previous, repaired by dynamic programming where it jumps); ``spatial``: BFS per
+#: frame; ``greedy``: the earlier temporal pass (each frame nearest the previous, no repair).
+CONSISTENCY_MODES = ("temporal", "spatial", "greedy")
+
+#: A step of a vertex's log between consecutive frames longer than this is a jump ...
+JUMP_STEP = np.pi
+#: ... and spurious (a branch change, not motion) when the rotation itself changes by less than this.
+JUMP_MOTION = 0.5 * np.pi
 
 
 def axis_angle(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -101,18 +119,114 @@ def nearest_representative(axis: np.ndarray, theta: np.ndarray, target: np.ndarr
     return w * (theta + TWO_PI * m)[..., None]
 
 
-def temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndarray:
+def greedy_temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndarray:
     """Spatial BFS on the first frame, then each frame's representative nearest the previous frame.
 
     Args:
         axis: ``(T, V, 3)``; theta: ``(T, V)``.
     Returns:
-        ``(T, V, 3)`` rotation vectors, continuous in time (no 2 pi jumps between frames).
+        ``(T, V, 3)`` rotation vectors.
     """
     out = np.empty(axis.shape)
     out[:1] = spatial_bfs(axis[:1], theta[:1], topology)
     for t in range(1, len(theta)):  # sequential in time by definition; vectorised over vertices
         out[t] = nearest_representative(axis[t], theta[t], out[t - 1])
+    return out
+
+
+def temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndarray:
+    """Rotation logs continuous in time: the fewest spurious jumps, then the smallest steps.
+
+    The greedy pass (:func:`greedy_temporal`) is kept on every vertex whose log never steps by more
+    than :data:`JUMP_STEP` (there it is the only jump-free choice); the others get
+    :func:`fewest_jumps`. The first frame keeps its spatial BFS logs.
+
+    Args:
+        axis: ``(T, V, 3)``; theta: ``(T, V)``.
+    Returns:
+        ``(T, V, 3)`` rotation vectors.
+    """
+    out = greedy_temporal(axis, theta, topology)
+    if len(out) < 2:
+        return out
+    steps = np.einsum("tvc,tvc->tv", *(np.diff(out, axis=0),) * 2)
+    hit = np.flatnonzero((steps > JUMP_STEP**2).any(axis=0))
+    if len(hit):
+        reach = float(np.sqrt(np.einsum("tvc,tvc->tv", out[:, hit], out[:, hit]).max()))
+        out[:, hit] = fewest_jumps(axis[:, hit], theta[:, hit], out[0, hit], reach)
+    return out
+
+
+def _unit_quaternions(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    half = 0.5 * angle
+    return np.concatenate([np.cos(half)[..., None], np.sin(half)[..., None] * axis], axis=-1)
+
+
+def relative_angles(logs: np.ndarray) -> np.ndarray:
+    """Angle of the rotation between consecutive frames, ``(T - 1, V)`` for logs ``(T, V, 3)``.
+
+    Independent of the branch of the logs (it compares the rotations they stand for).
+    """
+    norm = np.linalg.norm(logs, axis=-1)
+    axis = np.divide(logs, norm[..., None], out=np.zeros_like(logs), where=norm[..., None] > 0)
+    q = _unit_quaternions(axis, norm)
+    return 2.0 * np.arccos(np.clip(np.abs(np.einsum("tvc,tvc->tv", q[:-1], q[1:])), 0.0, 1.0))
+
+
+def fewest_jumps(axis: np.ndarray, theta: np.ndarray, first: np.ndarray, reach: float = 3 * np.pi) -> np.ndarray:
+    """Branches of frames 1.. that minimise (spurious jumps, then sum of squared steps), per vertex.
+
+    Exact dynamic programming (Viterbi) over the representatives ``(theta + 2 pi m) w``,
+    ``|m| <= M`` with ``2 pi M >= reach`` (pass the greedy path's largest log norm so that the
+    search covers it), vectorised over vertices. A step is a spurious jump when it is longer than
+    :data:`JUMP_STEP` while the rotation changes by less than :data:`JUMP_MOTION`. Frames with no
+    rotation take the previous frame's axis (their representatives are 0 and the 2 pi k shells).
+
+    Args:
+        axis: ``(T, n, 3)``; theta: ``(T, n)``; first: ``(n, 3)`` the logs of frame 0 (kept);
+        reach: the largest log norm the search must be able to represent.
+    Returns:
+        ``(T, n, 3)`` rotation vectors.
+    """
+    n_frames, n = theta.shape
+    small = theta <= NO_ROTATION
+    small[0] = False
+    norm0 = np.linalg.norm(first, axis=-1)
+    w = axis.copy()
+    w[0] = np.divide(first, norm0[:, None], out=np.tile([1.0, 0.0, 0.0], (n, 1)), where=norm0[:, None] > 0)
+    fill = np.maximum.accumulate(np.where(small, 0, np.arange(n_frames)[:, None]), axis=0)
+    w = np.take_along_axis(w, fill[..., None], axis=0)  # identity frames take the previous axis
+    base = np.where(small, 0.0, theta)
+    base[0] = norm0
+    # rotation change per step, from the principal representatives (branch-independent)
+    q = _unit_quaternions(w, base)
+    free = 2.0 * np.arccos(np.clip(np.abs(np.einsum("tvc,tvc->tv", q[:-1], q[1:])), 0.0, 1.0)) >= JUMP_MOTION
+    cos_turn = np.einsum("tvc,tvc->tv", w[:-1], w[1:])
+
+    m_max = max(1, int(np.ceil(max(reach, float(norm0.max(initial=0.0))) / TWO_PI)))
+    shift = TWO_PI * np.arange(-m_max, m_max + 1)
+    k = len(shift)
+    cand = base[..., None] + shift  # (T, n, K) signed angles along w
+    cand_sq = cand * cand
+    # every path's sum of squared steps is below this, so one jump outweighs any smoothness gain
+    penalty = n_frames * (2.0 * np.abs(cand).max() + 1.0) ** 2 + 1.0
+    cost = np.full((n, k), np.inf)
+    cost[:, m_max] = 0.0  # frame 0: the given logs (m = 0)
+    back = np.empty((n_frames, n, k), dtype=np.int16)
+    rows = np.arange(n)
+    for t in range(1, n_frames):
+        d2 = cand_sq[t - 1][:, :, None] + cand_sq[t][:, None, :] \
+            - (2.0 * cos_turn[t - 1])[:, None, None] * cand[t - 1][:, :, None] * cand[t][:, None, :]
+        jump = (d2 > JUMP_STEP**2) & ~free[t - 1][:, None, None]
+        total = cost[:, :, None] + d2 + penalty * jump  # (n, K from, K to)
+        back[t] = np.argmin(total, axis=1)
+        cost = np.take_along_axis(total, back[t][:, None, :], axis=1)[:, 0]
+    out = np.empty((n_frames, n, 3))
+    out[0] = first
+    state = np.argmin(cost, axis=1)
+    for t in range(n_frames - 1, 0, -1):
+        out[t] = w[t] * cand[t, rows, state][:, None]
+        state = back[t, rows, state]
     return out
 
 
@@ -122,4 +236,6 @@ def consistent_logs(axis: np.ndarray, theta: np.ndarray, topology: Topology, mod
         return temporal(axis, theta, topology)
     if mode == "spatial":
         return spatial_bfs(axis, theta, topology)
+    if mode == "greedy":
+        return greedy_temporal(axis, theta, topology)
     raise ValueError(f"unknown consistency mode {mode!r}; expected one of {CONSISTENCY_MODES}")

@@ -18,6 +18,9 @@ def register(sub) -> None:
                        "components, boundary / non-manifold edges and degenerate triangles of DATA.")
     p.add_argument("data", metavar="DATA", nargs="+", help="the sequence (see `meshseq --help`)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--no-jumps", dest="jumps", action="store_false",
+                   help="skip the feature check (extracting the default ACAP features against frame 0 "
+                   "and counting spurious 2 pi jumps of their rotation logs in time)")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("features", help="extract ACAP features (T, V, 9) to a .npz",
@@ -28,6 +31,9 @@ def register(sub) -> None:
     _feature_options(p)
     p.add_argument("--float32", action="store_true", help="store features as float32 (half the size)")
     p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
+    p.add_argument("--json", action="store_true",
+                   help="print a JSON summary (shape, options, spurious 2 pi jumps of the rotation logs: "
+                   "steps longer than pi where the rotation changes by less than pi/2)")
     p.set_defaults(func=cmd_features)
 
     p = sub.add_parser("roundtrip", help="extract features, reconstruct, report the error and speed",
@@ -46,8 +52,9 @@ def _feature_options(p: argparse.ArgumentParser) -> None:
     from meshseq.acap import CONSISTENCY_MODES
 
     p.add_argument("--consistency", choices=CONSISTENCY_MODES, default="temporal",
-                   help="rotation consistency: 'temporal' (default; each frame nearest the previous, "
-                   "no 2 pi jumps in time) or 'spatial' (per-frame BFS of the reference code)")
+                   help="rotation consistency: 'temporal' (default; logs continuous in time with the "
+                   "fewest spurious 2 pi jumps), 'spatial' (per-frame BFS of the reference code) or "
+                   "'greedy' (each frame nearest the previous, the earlier temporal pass)")
     p.add_argument("--exact", action="store_true",
                    help="exact encoding: minimum-norm correction of the gradients so that "
                    "reconstruction returns the input (method.md 2.5)")
@@ -93,7 +100,14 @@ def describe(seq) -> dict:
 
 
 def cmd_info(args) -> int:
-    info = describe(_load(args))
+    seq = _load(args)
+    info = describe(seq)
+    if args.jumps:
+        from meshseq.acap import extract
+        from meshseq.acap.diagnostics import feature_jumps
+
+        info["jump_check_consistency"] = "temporal"
+        info.update(feature_jumps(extract(seq.vertices, seq.faces)))
     _print(info, args.json, "info")
     return 0
 
@@ -127,8 +141,17 @@ def cmd_features(args) -> int:
     with atomic_output(out, force=args.force) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
-    print(f"wrote {out}: features {feats.shape} ({args.consistency} consistency"
-          f"{', exact' if args.exact else ''})")
+    from meshseq.acap.diagnostics import feature_jumps
+
+    jumps = feature_jumps(feats)
+    if args.json:
+        print(json.dumps({"output": str(out), "frames": int(feats.shape[0]), "vertices": int(feats.shape[1]),
+                          "consistency": args.consistency, "exact": bool(args.exact),
+                          "reference_frame": args.reference_frame, **jumps}, indent=2))
+    else:
+        print(f"wrote {out}: features {feats.shape} ({args.consistency} consistency"
+              f"{', exact' if args.exact else ''}); {jumps['spurious_jumps']} spurious 2 pi jumps in time "
+              f"on {jumps['spurious_jump_vertices']} vertices, largest step {jumps['largest_step']:.3g} rad")
     return 0
 
 
