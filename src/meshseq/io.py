@@ -9,7 +9,11 @@ A *mesh sequence* is T frames of one triangle mesh: vertices ``(T, V, 3)`` that 
 * a ``.npz`` with ``vertices`` ``(T, V, 3)``, ``faces`` ``(F, 3)`` and optional ``fps``, ``name``,
   ``vertex_map``,
 * a Dyna-style HDF5 file addressed as ``"file.h5:sequence_name"`` (the sequence dataset holds
-  vertices ``(V, 3, T)``, dataset ``faces`` the faces).
+  vertices ``(V, 3, T)``, dataset ``faces`` the faces),
+* the interchange formats of :mod:`meshseq.formats`: glTF morph-target animation
+  (``anim.glb``, ``anim.glb:MESH``), MDD/PC2 point caches with a base mesh for the faces
+  (``cache.pc2`` with ``cache.obj`` beside it, or ``base.obj:cache.pc2``) and USD
+  (``shot.usda``, ``shot.usda:/World/Mesh``).
 
 Every loader ends in :func:`validate_sequence`: bad data raises :class:`MeshseqError` with one
 line naming the file or frame; repairs (polygon triangulation, dropping unreferenced vertices)
@@ -19,7 +23,8 @@ Vertex order is preserved exactly as stored in the files (OBJ and OFF are parsed
 numpy; PLY goes through trimesh with ``process=False``), because every frame's vertex ``i`` must
 be the same point of the surface.
 
-:func:`save_sequence` writes ``.npz`` or a folder of OBJ/PLY frames; :func:`atomic_output` is the
+:func:`save_sequence` writes ``.npz``, a folder of OBJ/PLY frames, or ``.glb`` / ``.usd(a/c)`` /
+``.mdd`` / ``.pc2`` (:mod:`meshseq.formats`); :func:`atomic_output` is the
 general "write to a temporary sibling, then rename" context manager that every writer in the
 package uses, so an interrupted write never leaves a half-written file and nothing is
 overwritten without ``force``.
@@ -188,7 +193,9 @@ def load_sequence(spec: str | os.PathLike | Sequence[str | os.PathLike], *,
 
     Args:
         spec: a folder of OBJ/PLY/OFF frames, a ``.npz``, ``"file.h5:sequence"``, one mesh file
-            (a one-frame sequence), or a list of mesh files (one frame each, in the given order).
+            (a one-frame sequence), a list of mesh files (one frame each, in the given order), or
+            one of :mod:`meshseq.formats` (``.glb``/``.gltf``, ``.usd(a/c)``, ``.mdd``/``.pc2``
+            with a base mesh, and their ``FILE:ADDRESS`` forms).
         name: override the sequence name (default: stored name, else file/folder stem).
 
     Returns:
@@ -209,6 +216,11 @@ def load_sequence(spec: str | os.PathLike | Sequence[str | os.PathLike], *,
 
     text = os.fspath(spec)
     path = Path(text)
+    from meshseq import formats
+
+    special = formats.load(text, name=name)  # glTF, MDD/PC2 caches, USD (files and addresses)
+    if special is not None:
+        return special
     if not path.exists():
         h5 = _split_h5_address(text)
         if h5 is not None:
@@ -238,7 +250,8 @@ def _check_mesh_path(path: Path) -> None:
         raise MeshseqError(f"{path}: is a folder, expected a mesh file")
     if path.suffix.lower() not in MESH_EXTENSIONS:
         raise MeshseqError(f"{path}: unsupported extension {path.suffix!r} "
-                           f"(mesh frames: {', '.join(MESH_EXTENSIONS)}; sequences: .npz, .h5:NAME)")
+                           f"(mesh frames: {', '.join(MESH_EXTENSIONS)}; sequences: .npz, .h5:NAME, "
+                           ".glb/.gltf, .usd/.usda/.usdc, .mdd/.pc2 with a base mesh)")
 
 
 def _split_h5_address(text: str) -> tuple[str, str] | None:
@@ -639,6 +652,8 @@ def check_output(path: str | os.PathLike, *, force: bool = False) -> Path:
     """
     target = Path(path)
     _refuse_existing(target, force)
+    if target.suffix.lower() in (".mdd", ".pc2"):  # a point cache comes with its base mesh
+        _refuse_existing(target.with_suffix(".obj"), force)
     return target
 
 
@@ -661,7 +676,8 @@ def _remove(path: Path) -> None:
 
 
 def save_sequence(seq: MeshSequence, path: str | os.PathLike, *, format: str | None = None,
-                  force: bool = False, precision: int = 9) -> Path:
+                  force: bool = False, precision: int = 9, up: str = "y", normals: bool = True,
+                  meters_per_unit: float = 1.0) -> Path:
     """Write a sequence atomically; refuse to overwrite unless ``force``.
 
     Args:
@@ -669,11 +685,15 @@ def save_sequence(seq: MeshSequence, path: str | os.PathLike, *, format: str | N
         path: ``*.npz`` -> one NumPy archive (float64 vertices, faces, name, fps, vertex_map);
             a path without a suffix (or ending in ``/``) -> a folder of frames
             ``frame_0000.obj`` ... (``format="ply"`` for binary PLY frames, exact float64);
-            ``*.obj`` / ``*.ply`` -> a single mesh file (one-frame sequences only).
+            ``*.obj`` / ``*.ply`` -> a single mesh file (one-frame sequences only);
+            ``*.glb`` (morph-target animation), ``*.usd`` / ``*.usda`` / ``*.usdc`` (time-sampled
+            mesh), ``*.mdd`` / ``*.pc2`` (point cache, plus the base mesh as ``*.obj`` beside it):
+            see :func:`meshseq.formats.save`; they take the sequence's fps (default 24).
         format: ``"npz"``, ``"obj"`` or ``"ply"``; default from the path (folder -> ``"obj"``).
         force: replace an existing output (only once the new one is completely written).
         precision: significant digits of OBJ coordinates (9 round-trips float32 exactly;
             17 round-trips float64).
+        up, normals, meters_per_unit: for .glb (up, normals) and USD (up: y or z, meters_per_unit).
 
     Returns:
         The written path.
@@ -682,11 +702,17 @@ def save_sequence(seq: MeshSequence, path: str | os.PathLike, *, format: str | N
     target = Path(text)
     as_folder = text.endswith(("/", os.sep)) or target.suffix == "" or target.is_dir()
     suffix = "" if as_folder else target.suffix.lower().lstrip(".")
+    from meshseq import formats
+
+    if suffix and "." + suffix in formats.WRITE_EXTENSIONS:
+        if format is not None:
+            raise MeshseqError(f"{target}: format={format!r} is only for .npz and frame folders")
+        return formats.save(seq, target, force=force, up=up, normals=normals, meters_per_unit=meters_per_unit)
     if format is not None and format not in SAVE_FORMATS:
         raise MeshseqError(f"format {format!r} is not one of {', '.join(SAVE_FORMATS)}")
     if suffix and suffix not in SAVE_FORMATS:
-        raise MeshseqError(f"{target}: unsupported output extension .{suffix} (use .npz, .obj, .ply "
-                           "or a folder path)")
+        raise MeshseqError(f"{target}: unsupported output extension .{suffix} (use .npz, .obj, .ply, "
+                           ".glb, .usd, .usda, .usdc, .mdd, .pc2 or a folder path)")
     if suffix and format is not None and format != suffix:
         raise MeshseqError(f"{target}: extension .{suffix} contradicts format={format!r}")
     fmt = format or suffix or "obj"

@@ -28,7 +28,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Learn 3D mesh animation sequences and synthesize new ones "
         "(ACAP deformation features + bidirectional LSTM, Qiao et al. AAAI 2019).",
         epilog="DATA, wherever a command takes it: a folder of OBJ/PLY/OFF frames, a .npz with "
-        "'vertices' (T,V,3) and 'faces' (F,3), a Dyna-style FILE.h5:SEQUENCE, or several mesh files.",
+        "'vertices' (T,V,3) and 'faces' (F,3), a Dyna-style FILE.h5:SEQUENCE, several mesh files, "
+        "a glTF morph animation (ANIM.glb, ANIM.glb:MESH), a USD stage (SHOT.usda, "
+        "SHOT.usda:/PRIM/PATH), or an MDD/PC2 point cache with its base mesh (BASE.obj:CACHE.pc2, "
+        "or CACHE.pc2 with CACHE.obj beside it).",
     )
     parser.add_argument("--version", action="version", version=f"meshseq {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -80,7 +80,8 @@ def _run_data(p) -> None:
 
 def _output(p) -> None:
     p.add_argument("-o", "--output", required=True, metavar="OUT",
-                   help="output: a .npz, or a folder path for OBJ frames (--format ply for PLY)")
+                   help="output: a .npz, a folder path for OBJ frames (--format ply for PLY), or "
+                   ".glb, .usd/.usda/.usdc, .mdd/.pc2 (with the base mesh OUT.obj beside it)")
     p.add_argument("--format", choices=("npz", "obj", "ply"), default=None, help="output format (default: from OUT)")
     p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
 

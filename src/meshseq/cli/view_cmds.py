@@ -1,5 +1,5 @@
 """meshseq commands to look at sequences: ``render`` (PNG film strip, GIF, MP4), ``export`` (.glb
-animation, or .npz / mesh folders) and ``view`` (interactive web viewer)."""
+animation, USD, MDD/PC2 point caches, or .npz / mesh folders) and ``view`` (interactive web viewer)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ from pathlib import Path
 
 from meshseq.errors import MeshseqError
 
-SEQ_HELP = "a mesh sequence: folder of OBJ/PLY/OFF frames, .npz, or FILE.h5:SEQUENCE"
+SEQ_HELP = ("a mesh sequence: folder of OBJ/PLY/OFF frames, .npz, FILE.h5:SEQUENCE, .glb/.gltf, "
+            ".usd/.usda/.usdc, or an .mdd/.pc2 point cache (BASE.obj:CACHE.pc2)")
+EXPORT_SUFFIXES = (".glb", ".npz", ".obj", ".ply", ".usd", ".usda", ".usdc", ".mdd", ".pc2")
 DEFAULT_FPS = 24.0
 
 
@@ -50,17 +52,23 @@ def register(sub) -> None:
 
     p = sub.add_parser(
         "export",
-        help="export a sequence as an animated glTF (.glb), or as .npz / a folder of OBJ/PLY frames",
+        help="export a sequence as glTF (.glb), USD, an MDD/PC2 point cache, .npz or a folder of frames",
         description="OUT.glb: glTF 2.0 binary, the first frame as the mesh and the others as morph "
         "targets played by an animation at --fps (opens as an animation in Blender and in browser "
-        "glTF viewers). OUT.npz, or a folder path (OBJ frames; --format ply for binary PLY): the "
-        "sequence as meshseq reads it back.",
+        "glTF viewers). OUT.usd/.usda/.usdc: a USD stage with one Mesh whose points are sampled "
+        "at every frame (time codes at --fps; upAxis from --up, y or z; --meters-per-unit). "
+        "OUT.mdd / OUT.pc2: a point cache (float32 positions) plus the base mesh OUT.obj (frame 0 "
+        "and the faces) for importers that apply a cache to an existing mesh. OUT.npz, or a "
+        "folder path (OBJ frames; --format ply for binary PLY): the sequence as meshseq reads it back.",
     )
     p.add_argument("seq", metavar="SEQ", help=SEQ_HELP)
-    p.add_argument("-o", "--output", required=True, metavar="OUT", help="OUT.glb, OUT.npz, or a folder (e.g. frames/)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT",
+                   help="OUT.glb, OUT.usd(a/c), OUT.mdd, OUT.pc2, OUT.npz, or a folder (e.g. frames/)")
     p.add_argument("--fps", type=float, default=None,
                    help=f"frames per second of the animation (default: the data's, else {DEFAULT_FPS:g})")
-    p.add_argument("--up", default="y", help="the data's up axis (glTF is y-up; default: y)")
+    p.add_argument("--up", default="y", help="the data's up axis (glTF is y-up; a USD stage states y or z; default: y)")
+    p.add_argument("--meters-per-unit", type=float, default=1.0, metavar="M",
+                   help="USD only: the length of one data unit in meters, stated in the stage (default 1)")
     p.add_argument("--no-normals", action="store_true", help="leave vertex normals out of the .glb (smaller file)")
     p.add_argument("--format", choices=("obj", "ply"), default=None, help="frame format of a folder output")
     p.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
@@ -177,11 +185,18 @@ def cmd_export(args: argparse.Namespace) -> int:
     out = args.output
     suffix = Path(out).suffix.lower()
     is_folder = out.endswith(("/", os.sep)) or suffix == "" or Path(out).is_dir()
-    if not is_folder and suffix not in (".glb", ".npz", ".obj", ".ply"):
-        raise MeshseqError(f"{out}: unknown output extension {suffix!r}; expected .glb, .npz, .obj, .ply or a folder path")
+    if not is_folder and suffix not in EXPORT_SUFFIXES:
+        raise MeshseqError(f"{out}: unknown output extension {suffix!r}; expected "
+                           f"{', '.join(EXPORT_SUFFIXES)} or a folder path")
     if args.format is not None and not is_folder:
         raise MeshseqError(f"--format {args.format}: only for a folder output, not {out}")
     _refuse_existing(out.rstrip("/" + os.sep) or out, args.force)
+    if suffix in (".mdd", ".pc2"):
+        _refuse_existing(str(Path(out).with_suffix(".obj")), args.force)  # the base mesh written beside it
+    if suffix in (".usd", ".usda", ".usdc"):
+        from meshseq.formats.usd import _pxr
+
+        _pxr()  # usd-core missing: say so before loading anything
     seq = _load(args.seq)
     if suffix == ".glb":
         from meshseq.export import save_glb
@@ -194,10 +209,16 @@ def cmd_export(args: argparse.Namespace) -> int:
     else:
         from meshseq.io import save_sequence
 
-        if args.fps is not None:
+        if args.fps is not None or (suffix in (".usd", ".usda", ".usdc", ".mdd") and seq.fps is None):
             seq.fps = _fps(args, seq)
-        save_sequence(seq, out, format=args.format, force=args.force)
-        print(f"wrote {out} ({seq.n_frames} frames)")
+        save_sequence(seq, out, format=args.format, force=args.force, up=args.up,
+                      meters_per_unit=args.meters_per_unit)
+        base = Path(out).with_suffix(".obj")
+        extra = {".mdd": f" at {seq.fps or 0:g} fps, base mesh {base}", ".pc2": f", base mesh {base}"}.get(suffix, "")
+        if suffix in (".usd", ".usda", ".usdc"):
+            extra = (f" as time samples at {seq.fps:g} fps, up axis {args.up.lstrip('+').upper()}, "
+                     f"{args.meters_per_unit:g} m per unit")
+        print(f"wrote {out} ({seq.n_frames} frames{extra})")
     return 0
 
 
