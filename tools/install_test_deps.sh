@@ -6,7 +6,9 @@
 #   - headless Chromium and its WebDriver (Debian packages chromium, chromium-driver), for
 #     tests/test_viewer.py;
 #   - Mesa's EGL and software OpenGL (Debian packages libegl1, libegl-mesa0, libgl1-mesa-dri),
-#     for offscreen rendering with pyrender in tests/test_render.py.
+#     for offscreen rendering with pyrender in tests/test_render.py;
+#   - Blender, run headless, with numpy for its Python (Debian packages blender, python3-numpy),
+#     the client of the MDD/PC2/glTF files in tests/test_blender.py.
 # Debian packages are installed with apt-get when running as root; otherwise the script prints
 # the command to run and fails. Set MESHSEQ_NO_APT=1 to never call apt-get.
 set -euo pipefail
@@ -23,6 +25,8 @@ have_lib() { ldconfig -p 2>/dev/null | grep -q "$1" || ls /usr/lib/*/"$1"* >/dev
 have_lib libEGL.so.1 || apt_missing+=(libegl1)
 have_lib libEGL_mesa.so.0 || apt_missing+=(libegl-mesa0)
 ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1 || apt_missing+=(libgl1-mesa-dri)
+command -v blender >/dev/null 2>&1 || apt_missing+=(blender)
+[ -d /usr/lib/python3/dist-packages/numpy ] || apt_missing+=(python3-numpy)
 command -v node >/dev/null 2>&1 || apt_missing+=(nodejs)
 command -v npm >/dev/null 2>&1 || apt_missing+=(npm)
 
