@@ -197,6 +197,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         from meshseq.formats.usd import _pxr
 
         _pxr()  # usd-core missing: say so before loading anything
+        if args.up.lower().lstrip("+") not in ("y", "z"):
+            raise MeshseqError(f"--up {args.up!r}: a USD stage's up axis is y or z")
     seq = _load(args.seq)
     if suffix == ".glb":
         from meshseq.export import save_glb

@@ -43,19 +43,25 @@ def _read(path: Path) -> bytes:
 def fps_from_times(times: np.ndarray) -> float | None:
     """Frames per second of evenly spaced ``times (T,)`` in seconds (None if T < 2 or uneven).
 
-    A rate within 1e-4 (relative) of a whole number is returned as that number, so float32 times
-    ``t / 24`` give exactly 24.
+    Files store times as float32, so the rate is rounded to the fewest decimals (0 to 6) whose
+    times ``t0 + k / fps`` agree with the stored ones to float32 precision: float32 ``k / 24``
+    gives exactly 24 and ``k / 12.5`` exactly 12.5.
     """
     times = np.asarray(times, dtype=np.float64)
     if len(times) < 2:
         return None
     steps = np.diff(times)
-    step = float(np.median(steps))
+    step = (times[-1] - times[0]) / (len(times) - 1)
     if not step > 0 or np.abs(steps - step).max() > 1e-4 * step + 1e-6:
         return None
     fps = 1.0 / step
-    whole = round(fps)
-    return float(whole) if whole > 0 and abs(fps - whole) <= 1e-4 * fps else fps
+    k = np.arange(len(times))
+    tol = 4 * np.finfo(np.float32).eps * max(np.abs(times).max(), step)
+    for decimals in range(7):
+        candidate = round(fps, decimals)
+        if candidate > 0 and np.abs(times[0] + k / candidate - times).max() <= tol:
+            return float(candidate)
+    return fps
 
 
 def read_mdd(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:

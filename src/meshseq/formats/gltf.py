@@ -11,9 +11,11 @@ spacing) when keys were thinned out; ``fps`` is one over that spacing. Positions
 mesh's own coordinates (node transforms, e.g. the up-axis rotation of ``meshseq export --up``,
 are not applied), so meshseq's export -> import returns the exported float32 data.
 
-Several primitives of the mesh are concatenated (one vertex list, faces offset). Exporters split
-vertices along UV seams and sharp edges; vertices that coincide in every frame are merged again
-(warning; ``vertex_map`` gives each kept vertex's index in the file's concatenated list).
+Several primitives of the mesh are concatenated (one vertex list, faces offset). Exporters such
+as Blender's split vertices along UV seams and sharp edges; vertices that coincide in every frame
+are merged again (warning; ``vertex_map`` gives each kept vertex's index in the file's
+concatenated list). Files whose ``asset.generator`` is meshseq are never split, so nothing is
+merged in them: a sequence with coincident vertices of its own keeps them.
 """
 
 from __future__ import annotations
@@ -252,10 +254,14 @@ def load_gltf(path: Path, mesh_name: str | None, *, name: str | None):
     n_verts = len(base)
     vertices = base[None] + (weights @ target.reshape(n_targets, -1)).reshape(len(grid), n_verts, 3)
 
-    # merge vertices that the exporter split but that coincide in every frame
-    flat = np.ascontiguousarray(vertices.transpose(1, 0, 2)).reshape(n_verts, -1)
-    _, first, inverse = np.unique(flat, axis=0, return_index=True, return_inverse=True)
+    # merge vertices that the exporter split but that coincide in every frame (meshseq's own
+    # files are written unsplit: they are read as they are, duplicates in the data included)
     vertex_map = None
+    written_by_meshseq = (getattr(doc.asset, "generator", None) or "").startswith("meshseq")
+    first = np.arange(n_verts)
+    if not written_by_meshseq:
+        flat = np.ascontiguousarray(vertices.transpose(1, 0, 2)).reshape(n_verts, -1)
+        _, first, inverse = np.unique(flat, axis=0, return_index=True, return_inverse=True)
     if len(first) < n_verts:
         new_of_unique = np.empty(len(first), dtype=np.int64)
         new_of_unique[np.argsort(first)] = np.arange(len(first))
