@@ -336,3 +336,35 @@ def test_every_format_chains_through_the_cli(tmp_path, cow, capsys):
     np.testing.assert_array_equal(end.faces, cow.faces)
     np.testing.assert_allclose(end.vertices, cow.vertices, rtol=0, atol=1e-6)
     assert end.fps == 30.0
+
+
+def test_predict_and_complete_read_a_cache_and_write_every_format(tmp_path, capsys):
+    """DATA as a point cache, -o as .mdd / .pc2 / .usda / .glb: the commands go through
+    load_sequence and save_sequence like every other format."""
+    from meshseq.data.synthetic import twisting_limb
+    from meshseq.train import TrainConfig, load_training_data, train
+
+    limb = twisting_limb(frames=40, rings=8, segments=6)
+    limb.fps = 24.0
+    data = save_sequence(limb, tmp_path / "limb.pc2")  # + limb.obj
+    run = tmp_path / "run"
+    train(load_training_data([str(data)]), run,
+          TrainConfig(iterations=10, window=8, batch=2, eval_every=0, checkpoint_every=0, log_every=0),
+          model_options={"latent": 8, "lstm_layers": 1}, device="cpu", progress=False, log=lambda m: None)
+    for suffix in (".mdd", ".usda", ".glb"):
+        out = tmp_path / f"pred{suffix}"
+        assert main(["predict", str(run), str(data), "--start", "2", "--given", "3", "--frames", "5",
+                     "-o", str(out)]) == 0, suffix
+        p = load_sequence(out)
+        assert p.n_frames == 8 and np.array_equal(p.faces, limb.faces), suffix
+        np.testing.assert_allclose(p.vertices[:3], limb.vertices[2:5], rtol=0, atol=1e-6)
+    assert (tmp_path / "pred.obj").is_file()  # the MDD's base mesh
+    out = tmp_path / "comp.pc2"
+    assert main(["complete", str(run), str(data), "--keyframes", "3,9", "--method", "linear", "-o", str(out)]) == 0
+    c = load_sequence(out)
+    np.testing.assert_allclose(c.vertices[[0, -1]], limb.vertices[[3, 9]], rtol=0, atol=1e-6)
+    # a second run to the same cache is refused, also for the base mesh alone
+    (tmp_path / "comp.pc2").unlink()
+    one_line_error(capsys, ["complete", str(run), str(data), "--keyframes", "3,9", "--method", "linear",
+                            "-o", str(out)], "comp.obj", "--force")
+    assert not out.exists()
