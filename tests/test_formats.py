@@ -282,6 +282,7 @@ def test_usd_stage_authored_with_usdgeom_is_read(tmp_path, capsys):
     one_line_error(capsys, ["info", f"{path}:/World/Floor"], "/World/Floor", "no time samples")
     one_line_error(capsys, ["info", f"{path}:/World"], "not a Mesh")
     one_line_error(capsys, ["info", f"{path}:/World/Nope"], "no prim /World/Nope", "/World/Body")
+    one_line_error(capsys, ["info", f"{path}:World/Body"], "no prim World/Body")
 
 
 def test_usd_stage_without_a_mesh_or_without_samples_is_an_error(tmp_path, capsys):

@@ -56,7 +56,8 @@ def load_usd(path: Path, prim_path: str | None, *, name: str | None):
         raise MeshseqError(f"{path}: cannot open USD stage")
     meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
     if prim_path:
-        prim = stage.GetPrimAtPath(prim_path) if Sdf.Path.IsValidPathString(prim_path) else None
+        valid = prim_path.startswith("/") and Sdf.Path.IsValidPathString(prim_path)
+        prim = stage.GetPrimAtPath(prim_path) if valid else None
         if prim is None or not prim.IsValid():
             listed = ", ".join(str(p.GetPath()) for p in meshes[:5]) or "none"
             raise MeshseqError(f"{label}: no prim {prim_path} in the stage (meshes: {listed})")
