@@ -37,12 +37,13 @@ VARIANTS = {"bd": ({"variant": "bd"}, {}), "std-bd": ({"variant": "std-bd"}, {})
 
 
 def train_run(data: Path, run: Path, variant: str, args) -> dict:
-    from meshseq.train import TrainConfig, load_training_data, train
+    from meshseq.train import RECIPES, TrainConfig, load_training_data, train
 
     model_opts, weights = VARIANTS[variant]
+    options = {**RECIPES[args.recipe]["train"], **weights}
     config = TrainConfig(iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride,
                          seed=args.seed, checkpoint_every=max(50, args.iterations // 4), eval_every=0,
-                         holdout=HOLDOUT.get(data.stem, 0.2), **weights)
+                         holdout=HOLDOUT.get(data.stem, 0.2), **options)
     t0 = time.perf_counter()
     out = train(load_training_data([str(data)]), run, config, model_options=dict(model_opts, latent=args.latent),
                 device=args.device, resume=True, progress=not args.quiet)
@@ -130,6 +131,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default="pcow,crane,horse-gallop", help="names in ../shared/data (without .npz)")
     ap.add_argument("--variants", default="bd,std-bd,uni,no-kl")
+    ap.add_argument("--recipe", default="default", help="training recipe (meshseq.train.RECIPES): default or paper")
     ap.add_argument("--iterations", type=int, default=500)
     ap.add_argument("--window", type=int, default=32)
     ap.add_argument("--batch", type=int, default=8)

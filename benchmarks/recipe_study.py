@@ -226,6 +226,25 @@ def plot(files: list[str], output: str, given: str = "u3", horizon: str = "15") 
     os.replace(tmp, output)
 
 
+def summary_table(files: list[str]) -> str:
+    """Markdown table of the last checkpoint of each run (validation, h15, x 1e-4)."""
+    lines = ["| run | changed (vs. the paper's recipe) | it | u1 ours / zero vel. | u3 ours / best baseline "
+             "| u3 rigid ours / best | KL nats | latent spread | motion / truth |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for f in files:
+        r = json.loads(Path(f).read_text())
+        p = r["curve"][-1]
+        e = p["errors"]
+        best = lambda u, k: min(e[m][u][k]["15"] for m in ("zero_velocity", "linear_acap"))  # noqa: E731
+        changed = ", ".join(f"{k}={v}" for k, v in r["set"].items()) or "-"
+        lines.append(
+            f"| {r['name']} | {changed} | {p['iteration']} | {e['ours']['u1']['centroid']['15']:.0f} / "
+            f"{e['zero_velocity']['u1']['centroid']['15']:.0f} | {e['ours']['u3']['centroid']['15']:.0f} / "
+            f"{best('u3', 'centroid'):.0f} | {e['ours']['u3']['rigid']['15']:.0f} / {best('u3', 'rigid'):.0f} | "
+            f"{p['kl']:.3g} | {p['latent_spread']:.3g} | {p['motion'] / p['truth_motion']:.2f} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> None:
     import sys
 
@@ -248,8 +267,12 @@ def main(argv=None) -> None:
     p.add_argument("--plot", nargs="*", default=None, help="plot these result JSONs instead of training")
     p.add_argument("-o", "--output", default=None, help="PNG for --plot")
     p.add_argument("--given", default="u3")
+    p.add_argument("--summary", nargs="*", default=None, help="print a Markdown table of these result JSONs")
     args = p.parse_args(argv)
     args.argv = argv
+    if args.summary is not None:
+        print(summary_table(args.summary))
+        return
     if args.plot is not None:
         plot(args.plot, args.output or "study.png", args.given)
         return

@@ -187,3 +187,32 @@ def test_input_norm_standardises_the_encoder_input_and_is_stored(tmp_path):
         mu_a, _ = model.net.encode(x)
         mu_b, _ = plain.encode(torch.from_numpy(z[:3]).float())
     torch.testing.assert_close(mu_a, mu_b, rtol=1e-4, atol=1e-5)
+
+
+def test_cli_recipe_sets_the_options_and_flags_override(tmp_path):
+    import json
+
+    from meshseq.cli import main
+    from meshseq.io import save_sequence
+
+    seq, _ = limb()
+    data = tmp_path / "limb.npz"
+    save_sequence(seq, data)
+    common = ["--iterations", "1", "--window", "6", "--batch", "2", "--latent", "8", "--lstm-layers", "1",
+              "--no-progress", "--eval-every", "0"]
+
+    def stored(run):
+        meta = json.loads(next((run / "checkpoints").iterdir()).joinpath("model.json").read_text())
+        return meta["train"], meta["model"]
+
+    assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper", *common]) == 0
+    train_opts, model_opts = stored(tmp_path / "p")
+    assert train_opts["w_l2"] == 0.1 and train_opts["input_norm"] is False and model_opts["input_norm"] is False
+    assert main(["train", str(data), "--out", str(tmp_path / "d"), *common]) == 0
+    train_opts, model_opts = stored(tmp_path / "d")
+    assert train_opts["w_l2"] == RECIPES["default"]["train"]["w_l2"] and model_opts["input_norm"] is True
+    assert main(["train", str(data), "--out", str(tmp_path / "o"), "--recipe", "paper", "--input-norm",
+                 "--w-l2", "0.5", "--given", "2", *common]) == 0
+    train_opts, model_opts = stored(tmp_path / "o")
+    assert train_opts["w_l2"] == 0.5 and train_opts["given"] == 2 and model_opts["input_norm"] is True
+    assert train_opts["w_kl"] == 0.1  # the rest from the paper's recipe

@@ -54,6 +54,9 @@ def register(sub) -> None:
     l.add_argument("--w-l2", type=float, default=None, help="weight of L_2 (sum of squared weights)")
     l.add_argument("--given", type=int, default=None, help="teacher-forced first frames per chain: "
                    "each iteration draws 1..GIVEN (1 = the paper's free-running chains)")
+    l.add_argument("--input-norm", action=argparse.BooleanOptionalAction, default=None,
+                   help="normalise the encoder's input (frames centred on the mean training frame, unit "
+                   "spread per channel); the default recipe does, the paper's does not")
     l.add_argument("--step-scale", choices=("none", "data"), default=None,
                    help="none: X' = X + dX (the paper); data: X' = X + s dX with s the RMS frame-to-frame "
                    "change of each channel in the training data")
@@ -88,7 +91,7 @@ def _train(args) -> int:
     from meshseq.train import RECIPES
 
     recipe = dict(RECIPES[args.recipe]["train"])
-    for name in ("w_rec", "w_bd", "w_kl", "w_l2", "given", "step_scale"):
+    for name in ("w_rec", "w_bd", "w_kl", "w_l2", "given", "step_scale", "input_norm"):
         if getattr(args, name) is not None:
             recipe[name] = getattr(args, name)
     if args.no_kl:
