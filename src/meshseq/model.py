@@ -47,6 +47,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from meshseq.errors import MeshseqError
+from meshseq.kernels import MeshConvFused
 from meshseq.mesh import Topology
 
 VARIANTS = ("bd", "std-bd", "uni")
@@ -287,10 +288,26 @@ class _Decode(torch.autograd.Function):
 
 class _FC:
     """The big FC weight (and decoder bias) of one roll-out in channel-major form; with
-    ``deferred`` (training) its weight gradient is formed once, after all steps."""
+    ``deferred`` (training) its weight gradient is formed once, after all steps.
 
-    def __init__(self, model: "BDLSTM", deferred: bool):
+    ``fused``: the roll-out's conv layers run as ``kernels.MeshConvFused`` (the fast path; sparse
+    ring mean only), with the channel maps of every encoder and decoder layer sliced from the
+    parameters once per roll-out; otherwise ``MeshConv.forward`` (the reference).
+    """
+
+    def __init__(self, model: "BDLSTM", deferred: bool, fused: bool = False):
         V, C = model.config.n_vertices, model.config.channels
+        self.fused = fused and model.ring.impl == "sparse"
+        if self.fused:
+            # (w_self, w_ring, bias) per layer, channel-major: encoder W^T, decoder W (tied)
+            self.enc = [(c.weight[: c.c_in].t(), c.weight[c.c_in :].t(), c.bias) for c in model.convs]
+            K = len(model.convs)
+            self.dec = [
+                (model.convs[K - 1 - k].weight[: model.convs[K - 1 - k].c_in],
+                 model.convs[K - 1 - k].weight[model.convs[K - 1 - k].c_in :], model.dec_conv_bias[k])
+                for k in range(K)
+            ]
+            self.A, self.At = model.ring.A, model.ring.At
         self.bank = _GradBank() if deferred else None
         if deferred:
             self.weight = _WeightGate.apply(model.fc.weight, self.bank, V, C)
@@ -322,6 +339,9 @@ class BDLSTM(nn.Module):
     a seed gives the same initial weights on every machine and every rank.
     """
 
+    #: roll-outs use the fused conv kernels (``meshseq.kernels``); False: the plain reference ops
+    fast_path: bool = True
+
     def __init__(self, config: ModelConfig, topology: Topology):
         super().__init__()
         if topology.n_vertices != config.n_vertices:
@@ -341,34 +361,43 @@ class BDLSTM(nn.Module):
         self.lstm = nn.LSTM(L, L, config.lstm_layers)
         self.lstm_backward = nn.LSTM(L, L, config.lstm_layers) if config.variant == "std-bd" else None
 
-    def _fc_ops(self, deferred: bool = False) -> _FC:
-        return _FC(self, deferred and torch.is_grad_enabled() and self.fc.weight.requires_grad)
+    def _fc_ops(self, deferred: bool = False, fused: bool = False) -> _FC:
+        return _FC(self, deferred and torch.is_grad_enabled() and self.fc.weight.requires_grad, fused)
 
     # -- the pieces (channel-major) -----------------------------------------------------------
 
     def _encode_cm(self, x: torch.Tensor, fc: _FC) -> tuple[torch.Tensor, torch.Tensor]:
         """``(C, V, B)`` -> ``(mu, logvar)`` ``(B, L)``."""
-        for conv in self.convs:
-            x = torch.tanh(conv(x))
+        if fc.fused:
+            for w_self, w_ring, b in fc.enc:
+                x = MeshConvFused.apply(x, w_self, w_ring, b, fc.A, fc.At, True, None)
+        else:
+            for conv in self.convs:
+                x = torch.tanh(conv(x))
         e = fc.encode(x.reshape(-1, x.shape[-1]))
         return self.fc_mu(e), self.fc_logvar(e)
 
-    def _decode_cm(self, h: torch.Tensor, fc: _FC) -> torch.Tensor:
-        """``(B, L)`` -> ``dX`` ``(C, V, B)``."""
+    def _decode_cm(self, h: torch.Tensor, fc: _FC, residual: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, L)`` -> ``dX`` ``(C, V, B)`` (``residual + dX`` when a residual is given)."""
         C, V = self.config.channels, self.config.n_vertices
         y = fc.decode(h).view(C, V, h.shape[0])
         K = len(self.convs)
+        if fc.fused:
+            for k, (w_self, w_ring, b) in enumerate(fc.dec):
+                last = k == K - 1
+                y = MeshConvFused.apply(y, w_self, w_ring, b, fc.A, fc.At, not last, residual if last else None)
+            return y
         for k in range(K):
             y = self.convs[K - 1 - k](y, transpose=True, bias=self.dec_conv_bias[k])
             if k < K - 1:
                 y = torch.tanh(y)
-        return y
+        return y if residual is None else residual + y
 
     def _step_cm(self, state, x, fc: _FC, sample: bool, n_forward):
         mu, logvar = self._encode_cm(x, fc)
         z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         h, state = self._lstm(z, state, n_forward)
-        return state, x + self._decode_cm(h, fc), mu, logvar
+        return state, self._decode_cm(h, fc, residual=x), mu, logvar
 
     # -- public, batch-major ----------------------------------------------------------------------
 
@@ -423,7 +452,7 @@ class BDLSTM(nn.Module):
         Returns ``(frames (B, steps + 1, V, C)`` with ``frames[:, 0] = first``, ``mu``, ``logvar``
         ``(steps, B, L)``, final state)``. The time loop is the only Python loop.
         """
-        fc = self._fc_ops(deferred=True)
+        fc = self._fc_ops(deferred=True, fused=self.fast_path)
         x = first.permute(2, 1, 0).contiguous()  # (C, V, B)
         frames, mus, logvars = [x], [], []
         for _ in range(steps):
