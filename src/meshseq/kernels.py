@@ -43,7 +43,10 @@ class MeshConvFused(torch.autograd.Function):
     """
 
     @staticmethod
+    @torch.autocast("cpu", enabled=False)
+    @torch.autocast("cuda", enabled=False)
     def forward(ctx, x, w_self, w_ring, bias, A, At, act: bool, residual):
+        """Always float32 (memory-bound: bfloat16 would save little and lose precision)."""
         if act and residual is not None:
             raise ValueError("MeshConvFused: a residual after tanh is not supported")
         C_in, V, B = x.shape

@@ -223,7 +223,7 @@ class _GradBank:
     def gradient(self) -> torch.Tensor | None:
         if not self.left:
             return None
-        g = torch.cat(self.left).t() @ torch.cat(self.right)
+        g = (torch.cat(self.left).t() @ torch.cat(self.right)).float()
         self.left.clear()
         self.right.clear()
         return g
@@ -253,20 +253,24 @@ class _WeightGate(torch.autograd.Function):
 
 
 class _Encode(torch.autograd.Function):
-    """``e = x^T W^T + b``: x ``(N, B)`` (channel-major frames), W ``(L, N)`` -> ``(B, L)``."""
+    """``e = x^T W^T + b``: x ``(N, B)`` (channel-major frames), W ``(L, N)`` -> ``(B, L)``.
+
+    ``weight`` may be a low-precision (bfloat16) copy: the products then run in that precision
+    and the results come back in ``x``'s dtype (float32).
+    """
 
     @staticmethod
     def forward(ctx, x, weight, bias, bank):
         ctx.save_for_backward(x, weight)
         ctx.bank = bank
-        return torch.addmm(bias, x.t(), weight.t())
+        return torch.addmm(bias.to(weight.dtype), x.t().to(weight.dtype), weight.t()).to(x.dtype)
 
     @staticmethod
     def backward(ctx, g):  # g (B, L)
         x, weight = ctx.saved_tensors
-        ctx.bank.left.append(g)
-        ctx.bank.right.append(x.t())  # dW = g^T x^T
-        return (g @ weight).t(), None, g.sum(0), None
+        ctx.bank.left.append(g.to(weight.dtype))
+        ctx.bank.right.append(x.t().to(weight.dtype))  # dW = g^T x^T
+        return (g.to(weight.dtype) @ weight).t().to(g.dtype), None, g.sum(0), None
 
 
 class _Decode(torch.autograd.Function):
@@ -276,14 +280,15 @@ class _Decode(torch.autograd.Function):
     def forward(ctx, h, weight, bias, bank):
         ctx.save_for_backward(h, weight)
         ctx.bank = bank
-        return torch.addmm(bias[:, None], weight.t(), h.t())
+        out = torch.mm(weight.t(), h.t().to(weight.dtype))
+        return out.to(bias.dtype).add_(bias[:, None])
 
     @staticmethod
     def backward(ctx, g):  # g (N, B)
         h, weight = ctx.saved_tensors
-        ctx.bank.left.append(h)
-        ctx.bank.right.append(g.t())  # dW = h^T g^T
-        return (weight @ g).t(), None, g.sum(1), None
+        ctx.bank.left.append(h.to(weight.dtype))
+        ctx.bank.right.append(g.t().to(weight.dtype))  # dW = h^T g^T
+        return (weight @ g.to(weight.dtype)).t().to(g.dtype), None, g.sum(1), None
 
 
 class _FC:
@@ -311,6 +316,11 @@ class _FC:
         self.bank = _GradBank() if deferred else None
         if deferred:
             self.weight = _WeightGate.apply(model.fc.weight, self.bank, V, C)
+            dev = model.fc.weight.device.type
+            if torch.is_autocast_enabled(dev) and torch.get_autocast_dtype(dev) == torch.bfloat16:
+                # --precision bf16: one bfloat16 copy of the big weight per roll-out; the per-step
+                # products read half the bytes (and run at the bf16 rate); master weight stays float32
+                self.weight = self.weight.to(torch.bfloat16)
         else:
             self.weight = _to_channel_major(model.fc.weight, V, C)
         self.bias = model.fc.bias

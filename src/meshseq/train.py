@@ -44,9 +44,11 @@ from torch import nn
 from meshseq import checkpoint as ckpt
 from meshseq.data.windows import Split, WindowSampler, heldout_rows, split_frames
 from meshseq.errors import MeshseqError
+from meshseq.kernels import keep_freed_memory
 from meshseq.mesh import Topology, topology_hash
 from meshseq.model import BDLSTM, ModelConfig
 
+PRECISIONS = ("float32", "bf16")
 METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "heldout_rec", "heldout_bd")
 
 
@@ -72,6 +74,7 @@ class TrainConfig:
     checkpoint_every: int = 500
     log_every: int = 10
     keep: int = 2
+    precision: str = "float32"
 
     def __post_init__(self):
         for name in ("iterations", "window", "batch", "stride"):
@@ -85,6 +88,8 @@ class TrainConfig:
                 raise MeshseqError(f"loss weight {name}={getattr(self, name)} must be >= 0")
         if not float(self.lr) > 0:
             raise MeshseqError(f"--lr {self.lr}: expected a positive number")
+        if self.precision not in PRECISIONS:
+            raise MeshseqError(f"--precision {self.precision!r}: expected one of {', '.join(PRECISIONS)}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -188,6 +193,12 @@ def load_training_data(specs: list[str], consistency: str = "temporal") -> Train
     reference = first.vertices[0].copy()
     feats = [acap.extract(s.vertices, s.faces, reference=reference, consistency=consistency) for s in seqs]
     return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference)
+
+
+def autocast(device: torch.device, precision: str):
+    """The training step's precision: ``bf16`` = autocast to bfloat16 (float32 master weights and
+    optimizer; the roll-out's big FC products run in bfloat16, the mesh convolutions stay float32)."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
 
 
 def resolve_device(device: str) -> torch.device:
@@ -349,6 +360,8 @@ def train(
         dev = torch.device("cuda", dist_info.local_rank)
         torch.cuda.set_device(dev)
     is_main = dist_info.rank == 0
+    if dev.type == "cpu":
+        keep_freed_memory()  # reuse freed step-sized blocks instead of page-faulting fresh ones
     log = log if (is_main and log) else (lambda msg: None)
     if is_main:
         _prepare_run_dir(run_dir, resume, force)
@@ -472,7 +485,8 @@ def train(
             rows = sampler.sample(np_rng, config.batch)[lo:hi]
             windows = frames[torch.from_numpy(rows).to(dev)]
             optimizer.zero_grad(set_to_none=True)
-            total, terms = objective(windows)
+            with autocast(dev, config.precision):
+                total, terms = objective(windows)
             total.backward()
             optimizer.step()
 
