@@ -153,6 +153,13 @@ class NeighborMean(nn.Module):
             big = sp.kron(sp.identity(channels, format="csr"), A, format="csr")
             self.register_buffer("A", _csr(big), persistent=False)
             self.register_buffer("At", _csr(big.T.tocsr()), persistent=False)
+            # the (V, V) operator and its transpose as embedding-bag lists (kernels.ring_mean)
+            for name, m in (("bag", A.tocsr()), ("bag_t", A.T.tocsr())):
+                m.sort_indices()
+                self.register_buffer(f"{name}_index", torch.from_numpy(m.indices.astype(np.int64)), persistent=False)
+                self.register_buffer(f"{name}_offsets", torch.from_numpy(m.indptr[:-1].astype(np.int64)),
+                                     persistent=False)
+                self.register_buffer(f"{name}_weight", torch.from_numpy(m.data).float(), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``x`` ``(C, V, ...)`` -> ``(C, V, ...)``."""
@@ -214,7 +221,10 @@ def _to_vertex_major(w: torch.Tensor, V: int, C: int) -> torch.Tensor:
 
 
 class _GradBank:
-    """Pairs ``(left (B, L), right (B, N))`` whose products ``left^T right`` sum to a weight gradient."""
+    """Pairs ``(left (B, L), right (N, B))`` whose products ``(right left)^T`` sum to a weight gradient.
+
+    ``right`` is kept as the ``(N, B)`` channel-major frame it is (no transposing copy per step);
+    the sum is ``(R L)^T`` with ``R = [right_1 ... right_T]`` ``(N, T B)`` (one 64-byte-row copy)."""
 
     def __init__(self):
         self.left: list[torch.Tensor] = []
@@ -223,7 +233,7 @@ class _GradBank:
     def gradient(self) -> torch.Tensor | None:
         if not self.left:
             return None
-        g = (torch.cat(self.left).t() @ torch.cat(self.right)).float()
+        g = (torch.cat(self.right, 1) @ torch.cat(self.left)).t().float()
         self.left.clear()
         self.right.clear()
         return g
@@ -269,7 +279,7 @@ class _Encode(torch.autograd.Function):
     def backward(ctx, g):  # g (B, L)
         x, weight = ctx.saved_tensors
         ctx.bank.left.append(g.to(weight.dtype))
-        ctx.bank.right.append(x.t().to(weight.dtype))  # dW = g^T x^T
+        ctx.bank.right.append(x.to(weight.dtype))  # dW = g^T x^T = (x g)^T
         return (g.to(weight.dtype) @ weight).t().to(g.dtype), None, g.sum(0), None
 
 
@@ -287,7 +297,7 @@ class _Decode(torch.autograd.Function):
     def backward(ctx, g):  # g (N, B)
         h, weight = ctx.saved_tensors
         ctx.bank.left.append(h.to(weight.dtype))
-        ctx.bank.right.append(g.t().to(weight.dtype))  # dW = h^T g^T
+        ctx.bank.right.append(g.to(weight.dtype))  # dW = h^T g^T = (g h)^T
         return (weight @ g.to(weight.dtype)).t().to(g.dtype), None, g.sum(1), None
 
 
@@ -312,7 +322,7 @@ class _FC:
                  model.convs[K - 1 - k].weight[model.convs[K - 1 - k].c_in :], model.dec_conv_bias[k])
                 for k in range(K)
             ]
-            self.A, self.At = model.ring.A, model.ring.At
+            self.ring = model.ring
         self.bank = _GradBank() if deferred else None
         if deferred:
             self.weight = _WeightGate.apply(model.fc.weight, self.bank, V, C)
@@ -380,7 +390,7 @@ class BDLSTM(nn.Module):
         """``(C, V, B)`` -> ``(mu, logvar)`` ``(B, L)``."""
         if fc.fused:
             for w_self, w_ring, b in fc.enc:
-                x = MeshConvFused.apply(x, w_self, w_ring, b, fc.A, fc.At, True, None)
+                x = MeshConvFused.apply(x, w_self, w_ring, b, fc.ring, True, None)
         else:
             for conv in self.convs:
                 x = torch.tanh(conv(x))
@@ -395,7 +405,7 @@ class BDLSTM(nn.Module):
         if fc.fused:
             for k, (w_self, w_ring, b) in enumerate(fc.dec):
                 last = k == K - 1
-                y = MeshConvFused.apply(y, w_self, w_ring, b, fc.A, fc.At, not last, residual if last else None)
+                y = MeshConvFused.apply(y, w_self, w_ring, b, fc.ring, not last, residual if last else None)
             return y
         for k in range(K):
             y = self.convs[K - 1 - k](y, transpose=True, bias=self.dec_conv_bias[k])
