@@ -10,7 +10,7 @@ and prints:
 * achieved GFLOP/s next to a large float32 matmul's GFLOP/s measured in the same run (the
   practical limit of this machine);
 * the 1-ring mean by sparse matrix vs padded gather (forward + backward), which decides the
-  default ``--conv``;
+  default ``--conv``, and the fast path's ``embedding_bag`` ring mean (forward + transpose);
 * a large copy's memory bandwidth (GB/s) measured in the same run, and the bytes an iteration
   must move (the FC weight read 4 times per step, the activations saved for the backward pass,
   the banked FC inputs), as time floors next to the FLOP floor: which limit binds;
@@ -48,7 +48,7 @@ from meshseq import acap
 from meshseq.data.windows import WindowSampler, split_frames
 from meshseq.io import load_sequence
 from meshseq.mesh import Topology
-from meshseq.kernels import keep_freed_memory
+from meshseq.kernels import keep_freed_memory, ring_mean
 from meshseq.model import BDLSTM, ModelConfig, NeighborMean, count_step_flops
 from meshseq.train import TrainConfig, WindowLoss, autocast, resolve_device
 
@@ -123,6 +123,10 @@ def ring_benchmark(topo, device, rows=16, repeat=20) -> dict:
 
         fwd_bwd()
         out[impl] = statistics.median(timed(fwd_bwd, device, repeat)) * 1e3
+        if impl == "sparse":  # the fast path's ring mean (forward + the transposed one)
+            z = x.detach()
+            out["embedding_bag"] = statistics.median(timed(
+                lambda: (ring_mean(ring, z), ring_mean(ring, z, transpose=True)), device, repeat)) * 1e3
     return out
 
 

@@ -480,7 +480,8 @@ class BDLSTM(nn.Module):
             frames.append(x)
             mus.append(mu)
             logvars.append(logvar)
-        out = torch.stack(frames).permute(3, 0, 2, 1)  # (n, C, V, B) -> (B, n, V, C)
+        # (B, n, V, C), contiguous: one copy, and the loss then reads it in its own layout
+        out = torch.stack([f.permute(2, 1, 0) for f in frames], 1)
         if steps:
             return out, torch.stack(mus), torch.stack(logvars), state
         empty = first.new_zeros(0, first.shape[0], self.config.latent)
