@@ -33,6 +33,9 @@ Variants (``ModelConfig.variant``):
 
 Mesh convolution (paper Eq. 2): ``y_i = W1 x_i + W2 mean_{j in N(i)} x_j + b``, the 1-ring mean
 by a padded gather (``conv_impl="gather"``) or a row-normalised sparse matrix (``"sparse"``).
+``MeshConv.forward`` is the readable reference; with ``"sparse"``, ``rollout`` runs every conv
+layer as ``meshseq.kernels.MeshConvFused`` (the fast path: one fused layer with a hand-written
+backward; see that module), equal to the reference to float32 rounding.
 """
 
 from __future__ import annotations
@@ -129,7 +132,8 @@ class NeighborMean(nn.Module):
     ``impl="sparse"``: the row-normalised adjacency ``A`` ``(V, V)``, block-diagonal over the
     ``channels`` (``I_C (x) A``, CSR), times the ``(C*V, N)`` view; ``impl="gather"``: a padded
     ``(V, D)`` index table (D the largest degree) and weights ``mask / d`` (work ``C V D N``).
-    Isolated vertices (degree 0) get 0.
+    Isolated vertices (degree 0) get 0. ``"sparse"`` also keeps the ``(V, V)`` operator and its
+    transpose as embedding-bag lists (``bag_*``, ``bag_t_*``) for ``kernels.ring_mean``.
     """
 
     def __init__(self, topology: Topology, impl: str = "sparse", channels: int = 9):
