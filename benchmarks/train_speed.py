@@ -10,7 +10,17 @@ and prints:
 * achieved GFLOP/s next to a large float32 matmul's GFLOP/s measured in the same run (the
   practical limit of this machine);
 * the 1-ring mean by sparse matrix vs padded gather (forward + backward), which decides the
-  default ``--conv``;
+  default ``--conv``, and the fast path's ``embedding_bag`` ring mean (forward + transpose);
+* a large copy's memory bandwidth (GB/s) measured in the same run, and the bytes an iteration
+  must move (the FC weight read 4 times per step, the activations saved for the backward pass,
+  the banked FC inputs), as time floors next to the FLOP floor: which limit binds;
+* the variants side by side, measured in turn, iteration by iteration (A/B on a busy machine):
+  ``fast`` (the default float32 fast path, ``meshseq.kernels``), ``bf16`` (``--precision bf16``),
+  ``reference`` (the plain ops of ``MeshConv.forward``); wall and CPU seconds per iteration (CPU
+  seconds of this process are less disturbed by other processes on a shared machine);
+* with --scaling, seconds per iteration vs vertices (pcow 2.9k, horse 8.4k, crane 10k, the
+  horse subdivided once, 33.7k; random features: the speed does not depend on the values) and vs
+  windows per iteration (4, 8, 16);
 * with --profile, the operators that take the time (torch.profiler, one iteration).
 
 FLOPs are counted analytically from the layer shapes (``meshseq.model.count_step_flops``: 2 per
@@ -18,7 +28,8 @@ multiply-add; conv channel maps, ring means, the FC and its tied transpose, VAE 
 gates), forward per step times 31 steps times 16 rows; forward + backward = 3 x forward (the
 backward of a matmul is two matmuls of the same size: input and weight gradients).
 
-    python benchmarks/train_speed.py [DATA.npz] [--iterations 5] [--conv both] [--profile]
+    python benchmarks/train_speed.py [DATA.npz] [--iterations 5] [--variants fast,bf16,reference]
+        [--conv sparse|gather|both] [--scaling] [--device cuda] [--profile]
 """
 
 from __future__ import annotations
@@ -37,8 +48,9 @@ from meshseq import acap
 from meshseq.data.windows import WindowSampler, split_frames
 from meshseq.io import load_sequence
 from meshseq.mesh import Topology
+from meshseq.kernels import keep_freed_memory, ring_mean
 from meshseq.model import BDLSTM, ModelConfig, NeighborMean, count_step_flops
-from meshseq.train import TrainConfig, WindowLoss, resolve_device
+from meshseq.train import TrainConfig, WindowLoss, autocast, resolve_device
 
 DEFAULT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "horse-gallop.npz"
 
@@ -66,6 +78,40 @@ def matmul_gflops(device, n=4096, repeat=5) -> float:
     return 2 * n**3 / min(timed(lambda: a @ b, device, repeat)) / 1e9
 
 
+def copy_gbps(device, mib=256, repeat=5) -> float:
+    """Memory bandwidth: bytes read + written per second by a large tensor copy."""
+    a = torch.randn(mib * 2**20 // 4, device=device)
+    b = torch.empty_like(a)
+    b.copy_(a)
+    return 2 * a.numel() * 4 / min(timed(lambda: b.copy_(a), device, repeat)) / 1e9
+
+
+def bytes_per_iteration(cfg: ModelConfig, rows: int, steps: int, weight_bytes: int = 4) -> dict:
+    """Bytes an iteration must move between memory and the cores, by part (a floor, not a count).
+
+    fc: the FC weight (L x 9V) read 4 times per step (encoder and decoder products, forward and
+    backward) plus once for its gradient; saved: every conv layer's output written in the forward
+    pass and it and its input read in the backward pass (float32); bank: the FC inputs and output
+    gradients kept for the one weight-gradient matmul, written and read once.
+    """
+    V, C, L, K = cfg.n_vertices, cfg.channels, cfg.latent, cfg.conv_layers
+    act = C * V * rows * 4
+    return {"fc": (4 * steps + 2) * L * C * V * weight_bytes,
+            "saved": steps * 2 * K * 3 * act,
+            "bank": 2 * 2 * steps * rows * C * V * weight_bytes}
+
+
+def subdivide(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, int]:
+    """One midpoint subdivision (each triangle -> 4): the connectivity of a finer mesh."""
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
+    edges, inv = np.unique(e, axis=0, return_inverse=True)
+    m = n_vertices + inv.reshape(3, -1).T  # midpoints of (01, 12, 20) per face
+    a, b, c = faces.T
+    new = np.concatenate([np.stack([a, m[:, 0], m[:, 2]], 1), np.stack([m[:, 0], b, m[:, 1]], 1),
+                          np.stack([m[:, 2], m[:, 1], c], 1), m])
+    return new, n_vertices + len(edges)
+
+
 def ring_benchmark(topo, device, rows=16, repeat=20) -> dict:
     out = {}
     for impl in ("sparse", "gather"):
@@ -77,7 +123,82 @@ def ring_benchmark(topo, device, rows=16, repeat=20) -> dict:
 
         fwd_bwd()
         out[impl] = statistics.median(timed(fwd_bwd, device, repeat)) * 1e3
+        if impl == "sparse":  # the fast path's ring mean (forward + the transposed one)
+            z = x.detach()
+            out["embedding_bag"] = statistics.median(timed(
+                lambda: (ring_mean(ring, z), ring_mean(ring, z, transpose=True)), device, repeat)) * 1e3
     return out
+
+
+def make_iteration(cfg, topo, frames, sampler, rng, device, batch, precision="float32", fast=True):
+    """One training iteration (exactly the step ``meshseq train`` runs) of a fresh model."""
+    torch.manual_seed(0)
+    model = BDLSTM(cfg, topo).to(device)
+    model.fast_path = fast
+    objective = WindowLoss(model, TrainConfig())
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+
+    def iteration():
+        rows = sampler.sample(rng, batch)
+        w = frames[torch.from_numpy(rows).to(device)]
+        opt.zero_grad(set_to_none=True)
+        with autocast(device, precision):
+            total, _ = objective(w)
+        total.backward()
+        opt.step()
+
+    return iteration
+
+
+VARIANTS = {"fast": ("float32", True), "bf16": ("bf16", True), "reference": ("float32", False)}
+
+
+def measure_ab(iterations: dict, device, repeat: int) -> dict:
+    """Wall and CPU seconds of each variant, measured in turn (A, B, C, A, B, C, ...)."""
+    for fn in iterations.values():
+        fn()  # warm-up
+    out = {k: ([], []) for k in iterations}
+    for _ in range(repeat):
+        for k, fn in iterations.items():
+            sync(device)
+            t0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            sync(device)
+            out[k][0].append(time.perf_counter() - t0)
+            out[k][1].append(time.process_time() - c0)
+    return out
+
+
+def scaling_table(data_dir: Path, device, repeat: int) -> list[dict]:
+    """s/iteration (fast float32) vs vertices and vs windows per iteration; random features."""
+    meshes = []
+    for name in ("pcow", "horse-gallop", "crane"):
+        path = data_dir / f"{name}.npz"
+        if path.is_file():
+            seq = load_sequence(str(path))
+            meshes.append((name, seq.faces, seq.n_vertices))
+    horse = [m for m in meshes if m[0] == "horse-gallop"]
+    if horse:
+        faces, n = subdivide(horse[0][1], horse[0][2])
+        meshes.append(("horse subdivided", faces, n))
+    cases = [(name, f, n, 8) for name, f, n in meshes] + [(name, f, n, b) for name, f, n in horse for b in (4, 16)]
+    rows = []
+    for name, faces, n, batch in cases:
+        topo = Topology.from_faces(faces, n)
+        frames = (0.1 * torch.randn(64, n, 9)).to(device)
+        sampler = WindowSampler([split_frames(64, 0.0)], [name], 32)
+        cfg = ModelConfig(n_vertices=n, variant="bd")
+        it = make_iteration(cfg, topo, frames, sampler, np.random.default_rng(0), device, batch)
+        (wall, cpu), = measure_ab({"fast": it}, device, repeat).values()
+        peak = matmul_gflops(device, repeat=2)
+        flops = 3 * sum(count_step_flops(cfg, topo, 2 * batch).values()) * 31
+        rows.append({"mesh": name, "vertices": n, "windows": batch, "s_per_iteration": statistics.median(wall),
+                     "cpu_s": statistics.median(cpu), "gflop": flops / 1e9, "matmul_gflops": peak})
+        r = rows[-1]
+        print(f"  {name:17s} {n:7d} {batch:4d}   {r['s_per_iteration']:7.2f} {r['cpu_s']:7.2f} "
+              f"{r['gflop']:7.1f} {r['gflop'] / r['s_per_iteration']:8.1f} {peak:8.1f} "
+              f"{r['s_per_iteration'] * peak:8.0f}", flush=True)
+    return rows
 
 
 def main() -> None:
@@ -86,16 +207,26 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=5, help="measured iterations (after one warm-up)")
     ap.add_argument("--window", type=int, default=32)
     ap.add_argument("--batch", type=int, default=8)
-    ap.add_argument("--conv", choices=("sparse", "gather", "both"), default="both")
-    ap.add_argument("--gather-iterations", type=int, default=2, help="measured iterations of the gather variant")
+    ap.add_argument("--variants", default="fast,bf16",
+                    help="comma-separated, measured in turn: fast (float32), bf16, reference (plain ops)")
+    ap.add_argument("--conv", choices=("sparse", "gather", "both"), default="sparse",
+                    help="ring mean of the measured model (gather: the reference conv, slow)")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--profile", action="store_true", help="profile one iteration (default conv)")
+    ap.add_argument("--scaling", action="store_true", help="also the table of s/iteration vs vertices and windows")
+    ap.add_argument("--scaling-iterations", type=int, default=1)
+    ap.add_argument("--profile", action="store_true", help="profile one iteration (first variant)")
     ap.add_argument("--json", help="also write the figures to this JSON file")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
+    if device.type == "cpu":
+        keep_freed_memory()  # as meshseq train does
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    for v in variants:
+        if v not in VARIANTS:
+            ap.error(f"--variants: unknown {v!r} (expected {', '.join(VARIANTS)})")
     seq = load_sequence(args.data)
     topo = Topology.from_faces(seq.faces, seq.n_vertices)
     t0 = time.perf_counter()
@@ -111,60 +242,66 @@ def main() -> None:
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (other processes skew CPU timings)")
 
     peak = matmul_gflops(device)
+    bw = copy_gbps(device)
     print(f"float32 matmul 4096^3: {peak:.1f} GFLOP/s (this machine's practical limit)")
+    print(f"memory bandwidth (256 MiB copy, read + write): {bw:.1f} GB/s")
     ring = ring_benchmark(topo, device, rows=2 * args.batch)
-    faster = min(ring, key=ring.get)
-    print("1-ring mean, forward+backward on (9, V, 16): "
-          + ", ".join(f"{k} {v:.2f} ms" for k, v in ring.items()) + f" -> {faster} is faster")
+    print("1-ring mean, forward+backward on (9, V, 16): " + ", ".join(f"{k} {v:.2f} ms" for k, v in ring.items()))
 
+    steps, rows = args.window - 1, 2 * args.batch
     results = {"device": str(device), "threads": torch.get_num_threads(), "matmul_gflops": peak,
-               "ring_ms": ring, "extract_s": t_extract, "variants": {}}
+               "copy_gbps": bw, "ring_ms": ring, "extract_s": t_extract, "variants": {}}
     impls = ("sparse", "gather") if args.conv == "both" else (args.conv,)
     for impl in impls:
-        torch.manual_seed(0)
         cfg = ModelConfig(n_vertices=seq.n_vertices, variant="bd", conv_impl=impl)
-        model = BDLSTM(cfg, topo).to(device)
-        objective = WindowLoss(model, TrainConfig())
-        opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-
-        def iteration():
-            rows = sampler.sample(rng, args.batch)
-            w = frames[torch.from_numpy(rows).to(device)]
-            opt.zero_grad(set_to_none=True)
-            total, _ = objective(w)
-            total.backward()
-            opt.step()
-
-        iteration()  # warm-up
-        times = timed(iteration, device, args.iterations if impl == impls[0] else args.gather_iterations)
-        steps, rows = args.window - 1, 2 * args.batch
         fwd = sum(count_step_flops(cfg, topo, rows).values()) * steps
         flops = 3 * fwd
-        med, best = statistics.median(times), min(times)
-        achieved = flops / med / 1e9
-        print(f"\n[{impl}] {args.batch} windows x {args.window} frames, bd: "
-              f"{med:.2f} s/iteration (median of {len(times)}; best {best:.2f})")
-        print(f"[{impl}] FLOPs per iteration: {flops / 1e9:.1f} GFLOP (forward {fwd / 1e9:.1f}); "
-              f"achieved {achieved:.1f} GFLOP/s = {100 * achieved / peak:.0f}% of the matmul limit "
-              f"({flops / best / 1e9:.1f} GFLOP/s at the best iteration)")
-        print(f"[{impl}] projected 7000 iterations: {7000 * med / 3600:.1f} h (paper: ~8 h on a Tesla K40c)")
         parts = count_step_flops(cfg, topo, rows)
         share = {k: v / sum(parts.values()) for k, v in parts.items()}
-        results["variants"][impl] = {"seconds_per_iteration": med, "best": best, "times": times,
-                                     "gflop_per_iteration": flops / 1e9, "achieved_gflops": achieved,
-                                     "fraction_of_matmul": achieved / peak,
-                                     "projected_7000_hours": 7000 * med / 3600, "flop_share": share}
-        print(f"[{impl}] FLOP share: " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in share.items()))
+        print(f"\n[{impl}] {args.batch} windows x {args.window} frames, bd, {seq.n_vertices} vertices: "
+              f"{flops / 1e9:.1f} GFLOP per iteration (forward {fwd / 1e9:.1f}; "
+              + ", ".join(f"{k} {100 * v:.0f}%" for k, v in share.items()) + ")")
+        its = {v: make_iteration(cfg, topo, frames, sampler, rng, device, args.batch, *VARIANTS[v]) for v in variants}
+        timings = measure_ab(its, device, args.iterations)
+        peak_after = matmul_gflops(device, repeat=3)
+        print(f"[{impl}] float32 matmul after the iterations: {peak_after:.1f} GFLOP/s; load average "
+              f"{os.getloadavg()[0]:.1f}")
+        print(f"[{impl}] {'variant':10s} {'s/it':>6s} {'best':>6s} {'CPU s':>6s} {'GFLOP/s':>8s} "
+              f"{'of mm':>6s} {'s x mm':>7s} {'7000 it':>8s}   floors: FLOP, bytes")
+        for v in variants:
+            wall, cpu = timings[v]
+            med, best = statistics.median(wall), min(wall)
+            achieved = flops / med / 1e9
+            nbytes = bytes_per_iteration(cfg, rows, steps, 2 if v == "bf16" else 4)
+            t_flop = flops / (peak * (2 if v == "bf16" else 1)) / 1e9
+            t_bytes = sum(nbytes.values()) / (bw * 1e9)
+            print(f"[{impl}] {v:10s} {med:6.2f} {best:6.2f} {statistics.median(cpu):6.2f} {achieved:8.1f} "
+                  f"{100 * achieved / peak:5.0f}% {med * peak:7.0f} {7000 * med / 3600:7.1f}h   "
+                  f"{t_flop:.2f} s, {t_bytes:.2f} s ({sum(nbytes.values()) / 1e9:.1f} GB: "
+                  + ", ".join(f"{k} {b / 1e9:.1f}" for k, b in nbytes.items()) + ")")
+            results["variants"][f"{impl}/{v}"] = {
+                "seconds_per_iteration": med, "best": best, "times": wall, "cpu_times": cpu,
+                "gflop_per_iteration": flops / 1e9, "achieved_gflops": achieved,
+                "fraction_of_matmul": achieved / peak, "seconds_x_matmul_gflops": med * peak,
+                "projected_7000_hours": 7000 * med / 3600, "flop_share": share, "bytes": nbytes}
+        print(f"[{impl}] (s x mm: seconds per iteration x matmul GFLOP/s; the issue's target is <= 153, "
+              "i.e. 0.9 s at 170 GFLOP/s)")
 
         if args.profile and impl == impls[0]:
             from torch.profiler import ProfilerActivity, profile
 
             acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
             with profile(activities=acts) as prof:
-                iteration()
+                its[variants[0]]()
                 sync(device)
             key = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
             print(prof.key_averages().table(sort_by=key, row_limit=15))
+
+    if args.scaling:
+        print(f"\nscaling (fast path, float32, {args.scaling_iterations} measured iteration(s) each after a warm-up):")
+        print(f"  {'mesh':17s} {'V':>7s} {'win':>4s}   {'s/it':>7s} {'CPU s':>7s} {'GFLOP':>7s} "
+              f"{'GFLOP/s':>8s} {'mm GF/s':>8s} {'s x mm':>8s}")
+        results["scaling"] = scaling_table(Path(args.data).resolve().parent, device, args.scaling_iterations)
 
     print(f"\nload average at the end: {os.getloadavg()[0]:.1f}")
     if args.json:

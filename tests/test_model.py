@@ -236,3 +236,45 @@ def test_encode_decode_match_a_plain_batch_major_reference(limb):
             y = conv(m.convs[2 - k], y, True, m.dec_conv_bias[k])
             y = torch.tanh(y) if k < 2 else y
         torch.testing.assert_close(m.decode(h), y, atol=1e-5, rtol=1e-4)
+
+
+def _reference_rollout(m, first, steps, state, n_forward):
+    """The plain step-by-step roll-out: ``MeshConv.forward`` per layer, per-step FC autograd."""
+    fc = m._fc_ops(deferred=False, fused=False)
+    assert not fc.fused
+    x = first.permute(2, 1, 0)
+    frames, mus, logvars = [x], [], []
+    for _ in range(steps):
+        state, x, mu, logvar = m._step_cm(state, x, fc, True, n_forward)
+        frames.append(x)
+        mus.append(mu)
+        logvars.append(logvar)
+    return torch.stack(frames).permute(3, 0, 2, 1), torch.stack(mus), torch.stack(logvars), state
+
+
+def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch):
+    """Loss and every gradient of the fused roll-out equal the plain reference to 1e-5 relative."""
+    from meshseq.train import TrainConfig, WindowLoss
+
+    m = make(limb, latent=16, layers=3)
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.05 * torch.randn_like(p))  # non-zero biases too
+    w = torch.randn(3, 6, limb.n_vertices, 9) * 0.3
+    objective = WindowLoss(m, TrainConfig())
+
+    def run():
+        m.zero_grad()
+        torch.manual_seed(1)  # the same sampling noise in both runs
+        total, _ = objective(w)
+        total.backward()
+        return total.detach(), {n: p.grad.clone() for n, p in m.named_parameters()}
+
+    fast_loss, fast = run()
+    monkeypatch.setattr(m, "rollout", lambda first, steps, state, sample=False, n_forward=None:
+                        _reference_rollout(m, first, steps, state, n_forward))
+    ref_loss, ref = run()
+    assert abs(float(fast_loss) - float(ref_loss)) <= 1e-5 * abs(float(ref_loss))
+    for n in ref:
+        err = (fast[n] - ref[n]).norm() / ref[n].norm()
+        assert err <= 1e-5, f"{n}: relative error {float(err):.2e}"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from meshseq.data.synthetic import twisting_limb
 from meshseq.data.windows import WindowSampler, heldout_rows, split_frames, window_starts
 from meshseq.errors import MeshseqError
 from meshseq.io import save_sequence
-from meshseq.train import TrainConfig, TrainingData, load_training_data, train, window_losses
+from meshseq.train import TrainConfig, TrainingData, WindowLoss, load_training_data, train, window_losses
 
 SMALL = {"latent": 16, "lstm_layers": 2}
 
@@ -246,3 +247,43 @@ def test_tensorboard_events_when_installed_and_one_note_when_not(tmp_path, monke
     tags = {s[0] for s in scalars[1:-1]}
     assert {"loss", "rec", "bd", "kl", "l2", "heldout/rec", "heldout/bd"} <= tags
     assert sorted({s[2] for s in scalars[1:-1] if s[0] == "heldout/rec"}) == [2, 4]
+
+
+# -- precision and the GPU path ----------------------------------------------------------------
+
+
+def test_bf16_precision_trains_close_to_float32(tmp_path):
+    _, data = limb_data(frames=30)
+    cfg = dict(iterations=3, window=6, batch=3, eval_every=3, log_every=1)
+    f32 = train(data, tmp_path / "f32", TrainConfig(**cfg), SMALL, device="cpu", progress=False, log=None)
+    bf16 = train(data, tmp_path / "bf16", TrainConfig(precision="bf16", **cfg), SMALL, device="cpu",
+                 progress=False, log=None)
+    assert math.isfinite(bf16["loss"]) and abs(bf16["loss"] - f32["loss"]) <= 0.05 * abs(f32["loss"])
+    assert all(p.dtype == torch.float32 for p in bf16["model"].parameters())  # float32 master weights
+    with pytest.raises(MeshseqError, match="precision"):
+        TrainConfig(precision="fp8")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(),
+                    reason="no CUDA GPU on this machine: the GPU training path is untested here")
+@pytest.mark.parametrize("precision", ["float32", "bf16"])
+def test_cuda_trains_and_resumes(tmp_path, precision):
+    _, data = limb_data(frames=30)
+    cfg = dict(window=6, batch=3, eval_every=2, checkpoint_every=2, log_every=1, precision=precision)
+    one = train(data, tmp_path / "a", TrainConfig(iterations=4, **cfg), SMALL, device="cuda", progress=False,
+                log=None)
+    train(data, tmp_path / "b", TrainConfig(iterations=2, **cfg), SMALL, device="cuda", progress=False, log=None)
+    two = train(data, tmp_path / "b", TrainConfig(iterations=4, **cfg), SMALL, device="cuda", resume=True,
+                progress=False, log=None)
+    assert two["iteration"] == 4 and math.isfinite(one["loss"])
+    assert next(one["model"].parameters()).device.type == "cuda"
+    sa, sb = one["model"].state_dict(), two["model"].state_dict()
+    for k in sa:  # CUDA reductions (sparse products, atomics) need not repeat bit for bit
+        torch.testing.assert_close(sa[k], sb[k], atol=1e-5, rtol=1e-4, msg=k)
+    # the same roll-out on CPU and on CUDA gives the same loss
+    model = one["model"]
+    w = 0.1 * torch.randn(2, 5, model.config.n_vertices, 9)
+    with torch.no_grad():
+        gpu = WindowLoss(model, TrainConfig())(w.cuda(), sample=False)[0].item()
+        cpu = WindowLoss(model.cpu(), TrainConfig())(w, sample=False)[0].item()
+    assert abs(gpu - cpu) <= 1e-4 * abs(cpu)

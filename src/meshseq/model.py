@@ -33,6 +33,9 @@ Variants (``ModelConfig.variant``):
 
 Mesh convolution (paper Eq. 2): ``y_i = W1 x_i + W2 mean_{j in N(i)} x_j + b``, the 1-ring mean
 by a padded gather (``conv_impl="gather"``) or a row-normalised sparse matrix (``"sparse"``).
+``MeshConv.forward`` is the readable reference; with ``"sparse"``, ``rollout`` runs every conv
+layer as ``meshseq.kernels.MeshConvFused`` (the fast path: one fused layer with a hand-written
+backward; see that module), equal to the reference to float32 rounding.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from meshseq.errors import MeshseqError
+from meshseq.kernels import MeshConvFused
 from meshseq.mesh import Topology
 
 VARIANTS = ("bd", "std-bd", "uni")
@@ -145,7 +149,8 @@ class NeighborMean(nn.Module):
     ``impl="sparse"``: the row-normalised adjacency ``A`` ``(V, V)``, block-diagonal over the
     ``channels`` (``I_C (x) A``, CSR), times the ``(C*V, N)`` view; ``impl="gather"``: a padded
     ``(V, D)`` index table (D the largest degree) and weights ``mask / d`` (work ``C V D N``).
-    Isolated vertices (degree 0) get 0.
+    Isolated vertices (degree 0) get 0. ``"sparse"`` also keeps the ``(V, V)`` operator and its
+    transpose as embedding-bag lists (``bag_*``, ``bag_t_*``) for ``kernels.ring_mean``.
     """
 
     def __init__(self, topology: Topology, impl: str = "sparse", channels: int = 9):
@@ -169,6 +174,13 @@ class NeighborMean(nn.Module):
             big = sp.kron(sp.identity(channels, format="csr"), A, format="csr")
             self.register_buffer("A", _csr(big), persistent=False)
             self.register_buffer("At", _csr(big.T.tocsr()), persistent=False)
+            # the (V, V) operator and its transpose as embedding-bag lists (kernels.ring_mean)
+            for name, m in (("bag", A.tocsr()), ("bag_t", A.T.tocsr())):
+                m.sort_indices()
+                self.register_buffer(f"{name}_index", torch.from_numpy(m.indices.astype(np.int64)), persistent=False)
+                self.register_buffer(f"{name}_offsets", torch.from_numpy(m.indptr[:-1].astype(np.int64)),
+                                     persistent=False)
+                self.register_buffer(f"{name}_weight", torch.from_numpy(m.data).float(), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``x`` ``(C, V, ...)`` -> ``(C, V, ...)``."""
@@ -230,7 +242,10 @@ def _to_vertex_major(w: torch.Tensor, V: int, C: int) -> torch.Tensor:
 
 
 class _GradBank:
-    """Pairs ``(left (B, L), right (B, N))`` whose products ``left^T right`` sum to a weight gradient."""
+    """Pairs ``(left (B, L), right (N, B))`` whose products ``(right left)^T`` sum to a weight gradient.
+
+    ``right`` is kept as the ``(N, B)`` channel-major frame it is (no transposing copy per step);
+    the sum is ``(R L)^T`` with ``R = [right_1 ... right_T]`` ``(N, T B)`` (one 64-byte-row copy)."""
 
     def __init__(self):
         self.left: list[torch.Tensor] = []
@@ -239,7 +254,7 @@ class _GradBank:
     def gradient(self) -> torch.Tensor | None:
         if not self.left:
             return None
-        g = torch.cat(self.left).t() @ torch.cat(self.right)
+        g = (torch.cat(self.right, 1) @ torch.cat(self.left)).t().float()
         self.left.clear()
         self.right.clear()
         return g
@@ -269,20 +284,24 @@ class _WeightGate(torch.autograd.Function):
 
 
 class _Encode(torch.autograd.Function):
-    """``e = x^T W^T + b``: x ``(N, B)`` (channel-major frames), W ``(L, N)`` -> ``(B, L)``."""
+    """``e = x^T W^T + b``: x ``(N, B)`` (channel-major frames), W ``(L, N)`` -> ``(B, L)``.
+
+    ``weight`` may be a low-precision (bfloat16) copy: the products then run in that precision
+    and the results come back in ``x``'s dtype (float32).
+    """
 
     @staticmethod
     def forward(ctx, x, weight, bias, bank):
         ctx.save_for_backward(x, weight)
         ctx.bank = bank
-        return torch.addmm(bias, x.t(), weight.t())
+        return torch.addmm(bias.to(weight.dtype), x.t().to(weight.dtype), weight.t()).to(x.dtype)
 
     @staticmethod
     def backward(ctx, g):  # g (B, L)
         x, weight = ctx.saved_tensors
-        ctx.bank.left.append(g)
-        ctx.bank.right.append(x.t())  # dW = g^T x^T
-        return (g @ weight).t(), None, g.sum(0), None
+        ctx.bank.left.append(g.to(weight.dtype))
+        ctx.bank.right.append(x.to(weight.dtype))  # dW = g^T x^T = (x g)^T
+        return (g.to(weight.dtype) @ weight).t().to(g.dtype), None, g.sum(0), None
 
 
 class _Decode(torch.autograd.Function):
@@ -292,25 +311,47 @@ class _Decode(torch.autograd.Function):
     def forward(ctx, h, weight, bias, bank):
         ctx.save_for_backward(h, weight)
         ctx.bank = bank
-        return torch.addmm(bias[:, None], weight.t(), h.t())
+        out = torch.mm(weight.t(), h.t().to(weight.dtype))
+        return out.to(bias.dtype).add_(bias[:, None])
 
     @staticmethod
     def backward(ctx, g):  # g (N, B)
         h, weight = ctx.saved_tensors
-        ctx.bank.left.append(h)
-        ctx.bank.right.append(g.t())  # dW = h^T g^T
-        return (weight @ g).t(), None, g.sum(1), None
+        ctx.bank.left.append(h.to(weight.dtype))
+        ctx.bank.right.append(g.to(weight.dtype))  # dW = h^T g^T = (g h)^T
+        return (weight @ g.to(weight.dtype)).t().to(g.dtype), None, g.sum(1), None
 
 
 class _FC:
     """The big FC weight (and decoder bias) of one roll-out in channel-major form; with
-    ``deferred`` (training) its weight gradient is formed once, after all steps."""
+    ``deferred`` (training) its weight gradient is formed once, after all steps.
 
-    def __init__(self, model: "BDLSTM", deferred: bool):
+    ``fused``: the roll-out's conv layers run as ``kernels.MeshConvFused`` (the fast path; sparse
+    ring mean only), with the channel maps of every encoder and decoder layer sliced from the
+    parameters once per roll-out; otherwise ``MeshConv.forward`` (the reference).
+    """
+
+    def __init__(self, model: "BDLSTM", deferred: bool, fused: bool = False):
         V, C = model.config.n_vertices, model.config.channels
+        self.fused = fused and model.ring.impl == "sparse"
+        if self.fused:
+            # (w_self, w_ring, bias) per layer, channel-major: encoder W^T, decoder W (tied)
+            self.enc = [(c.weight[: c.c_in].t(), c.weight[c.c_in :].t(), c.bias) for c in model.convs]
+            K = len(model.convs)
+            self.dec = [
+                (model.convs[K - 1 - k].weight[: model.convs[K - 1 - k].c_in],
+                 model.convs[K - 1 - k].weight[model.convs[K - 1 - k].c_in :], model.dec_conv_bias[k])
+                for k in range(K)
+            ]
+            self.ring = model.ring
         self.bank = _GradBank() if deferred else None
         if deferred:
             self.weight = _WeightGate.apply(model.fc.weight, self.bank, V, C)
+            dev = model.fc.weight.device.type
+            if torch.is_autocast_enabled(dev) and torch.get_autocast_dtype(dev) == torch.bfloat16:
+                # --precision bf16: one bfloat16 copy of the big weight per roll-out; the per-step
+                # products read half the bytes (and run at the bf16 rate); master weight stays float32
+                self.weight = self.weight.to(torch.bfloat16)
         else:
             self.weight = _to_channel_major(model.fc.weight, V, C)
         self.bias = model.fc.bias
@@ -338,6 +379,9 @@ class BDLSTM(nn.Module):
     ``(C, V, B)`` frames, the layout of the roll-out. Parameters are created in a fixed order, so
     a seed gives the same initial weights on every machine and every rank.
     """
+
+    #: roll-outs use the fused conv kernels (``meshseq.kernels``); False: the plain reference ops
+    fast_path: bool = True
 
     def __init__(self, config: ModelConfig, topology: Topology):
         super().__init__()
@@ -375,8 +419,8 @@ class BDLSTM(nn.Module):
             self.input_offset.copy_(torch.from_numpy(offset.T[:, :, None]).to(self.input_offset))
             self.input_spread.copy_(torch.from_numpy(rms[:, None, None]).to(self.input_spread))
 
-    def _fc_ops(self, deferred: bool = False) -> _FC:
-        return _FC(self, deferred and torch.is_grad_enabled() and self.fc.weight.requires_grad)
+    def _fc_ops(self, deferred: bool = False, fused: bool = False) -> _FC:
+        return _FC(self, deferred and torch.is_grad_enabled() and self.fc.weight.requires_grad, fused)
 
     # -- the pieces (channel-major) -----------------------------------------------------------
 
@@ -384,30 +428,38 @@ class BDLSTM(nn.Module):
         """``(C, V, B)`` -> ``(mu, logvar)`` ``(B, L)``."""
         if self.config.input_norm:
             x = (x - self.input_offset) / self.input_spread
-        for conv in self.convs:
-            x = torch.tanh(conv(x))
+        if fc.fused:
+            for w_self, w_ring, b in fc.enc:
+                x = MeshConvFused.apply(x, w_self, w_ring, b, fc.ring, True, None)
+        else:
+            for conv in self.convs:
+                x = torch.tanh(conv(x))
         e = fc.encode(x.reshape(-1, x.shape[-1]))
         return self.fc_mu(e), self.fc_logvar(e)
 
-    def _decode_cm(self, h: torch.Tensor, fc: _FC) -> torch.Tensor:
-        """``(B, L)`` -> ``dX`` ``(C, V, B)``."""
+    def _decode_cm(self, h: torch.Tensor, fc: _FC, residual: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, L)`` -> ``dX`` ``(C, V, B)`` (``residual + dX`` when a residual is given)."""
         C, V = self.config.channels, self.config.n_vertices
         y = fc.decode(h).view(C, V, h.shape[0])
         K = len(self.convs)
+        if fc.fused:
+            for k, (w_self, w_ring, b) in enumerate(fc.dec):
+                last = k == K - 1
+                y = MeshConvFused.apply(y, w_self, w_ring, b, fc.ring, not last, residual if last else None)
+            return y
         for k in range(K):
             y = self.convs[K - 1 - k](y, transpose=True, bias=self.dec_conv_bias[k])
             if k < K - 1:
                 y = torch.tanh(y)
-        return y
+        return y if residual is None else residual + y
 
     def _step_cm(self, state, x, fc: _FC, sample: bool, n_forward):
         mu, logvar = self._encode_cm(x, fc)
         z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         h, state = self._lstm(z, state, n_forward)
-        dx = self._decode_cm(h, fc)
         if self.config.step_scale is not None:
-            dx = dx * self.step_scale
-        return state, x + dx, mu, logvar
+            return state, x + self._decode_cm(h, fc) * self.step_scale, mu, logvar
+        return state, self._decode_cm(h, fc, residual=x), mu, logvar
 
     # -- public, batch-major ----------------------------------------------------------------------
 
@@ -462,7 +514,7 @@ class BDLSTM(nn.Module):
         Returns ``(frames (B, steps + 1, V, C)`` with ``frames[:, 0] = first``, ``mu``, ``logvar``
         ``(steps, B, L)``, final state)``. The time loop is the only Python loop.
         """
-        fc = self._fc_ops(deferred=True)
+        fc = self._fc_ops(deferred=True, fused=self.fast_path)
         x = first.permute(2, 1, 0).contiguous()  # (C, V, B)
         frames, mus, logvars = [x], [], []
         for _ in range(steps):
@@ -470,7 +522,8 @@ class BDLSTM(nn.Module):
             frames.append(x)
             mus.append(mu)
             logvars.append(logvar)
-        out = torch.stack(frames).permute(3, 0, 2, 1)  # (n, C, V, B) -> (B, n, V, C)
+        # (B, n, V, C), contiguous: one copy, and the loss then reads it in its own layout
+        out = torch.stack([f.permute(2, 1, 0) for f in frames], 1)
         if steps:
             return out, torch.stack(mus), torch.stack(logvars), state
         empty = first.new_zeros(0, first.shape[0], self.config.latent)

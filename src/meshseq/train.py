@@ -47,9 +47,11 @@ from torch import nn
 from meshseq import checkpoint as ckpt
 from meshseq.data.windows import Split, WindowSampler, heldout_rows, split_frames
 from meshseq.errors import MeshseqError
+from meshseq.kernels import keep_freed_memory
 from meshseq.mesh import Topology, topology_hash
 from meshseq.model import BDLSTM, ModelConfig
 
+PRECISIONS = ("float32", "bf16")
 METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "latent_spread", "heldout_rec",
                  "heldout_bd")
 
@@ -118,6 +120,7 @@ class TrainConfig:
     checkpoint_every: int = 500
     log_every: int = 10
     keep: int = 2
+    precision: str = "float32"
 
     def __post_init__(self):
         for name in ("iterations", "window", "batch", "stride"):
@@ -135,6 +138,8 @@ class TrainConfig:
             raise MeshseqError(f"--given {self.given}: expected 1 <= given < --window ({self.window})")
         if self.step_scale not in STEP_SCALES:
             raise MeshseqError(f"--step-scale {self.step_scale!r}: expected one of {', '.join(STEP_SCALES)}")
+        if self.precision not in PRECISIONS:
+            raise MeshseqError(f"--precision {self.precision!r}: expected one of {', '.join(PRECISIONS)}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -269,6 +274,12 @@ def step_spread(scaled: list[np.ndarray], splits: list[Split], stride: int = 1) 
     rms = np.sqrt(np.asarray(sums) / count)
     good = rms > 1e-8
     return np.where(good, rms, rms[good].mean() if good.any() else 1.0)
+
+
+def autocast(device: torch.device, precision: str):
+    """The training step's precision: ``bf16`` = autocast to bfloat16 (float32 master weights and
+    optimizer; the roll-out's big FC products run in bfloat16, the mesh convolutions stay float32)."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
 
 
 def resolve_device(device: str) -> torch.device:
@@ -430,6 +441,8 @@ def train(
         dev = torch.device("cuda", dist_info.local_rank)
         torch.cuda.set_device(dev)
     is_main = dist_info.rank == 0
+    if dev.type == "cpu":
+        keep_freed_memory()  # reuse freed step-sized blocks instead of page-faulting fresh ones
     log = log if (is_main and log) else (lambda msg: None)
     if is_main:
         _prepare_run_dir(run_dir, resume, force)
@@ -562,7 +575,8 @@ def train(
             windows = frames[torch.from_numpy(rows).to(dev)]
             given = 1 if config.given <= 1 else int(np_rng.integers(1, config.given + 1))
             optimizer.zero_grad(set_to_none=True)
-            total, terms = objective(windows, sample=config.sample, given=given)
+            with autocast(dev, config.precision):
+                total, terms = objective(windows, sample=config.sample, given=given)
             total.backward()
             optimizer.step()
 
