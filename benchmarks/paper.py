@@ -121,6 +121,9 @@ def write_markdown(summaries: dict, device: str, path: Path) -> None:
                       "", f"![feature change {name}](img/feature_change_{name}.png)", ""]
     notes = sorted({n for s in summaries.values() for r in s["results"].values() for n in r.get("notes", [])})
     lines += [f"Note: {n}." for n in notes]
+    study = path.parent / "recipe_study.md"  # the recipe study (benchmarks/recipe_study.py), kept beside
+    if study.is_file():
+        lines += ["", study.read_text().rstrip()]
     from meshseq.io import atomic_output
 
     with atomic_output(path, force=True) as tmp:
