@@ -25,7 +25,8 @@ from pathlib import Path
 import bpy
 import numpy
 
-numpy.bool = bool  # Blender 3.4's glTF importer still uses it
+if not hasattr(numpy, "bool"):  # numpy 1.24-1.26 (Debian's); numpy 2 has it back
+    numpy.bool = bool  # Blender 3.4's glTF importer still uses it
 np = numpy
 
 FPS = 24
