@@ -128,6 +128,15 @@ def test_evaluate_command_writes_the_tables_json(trained, tmp_path, capsys):
             assert all(v > 0 for v in per_u["u1"].values())
     # rigid alignment can only lower the error
     assert r["errors_aligned"]["ours"]["u1"]["5"] <= r["errors"]["ours"]["u1"]["5"] + 1e-9
+    # scale-free copies: per bounding-box diagonal of the first held-out frame
+    seq = load_sequence(data)
+    diag = np.linalg.norm(seq.vertices[58].max(0) - seq.vertices[58].min(0))
+    assert r["diagonal"] == pytest.approx(diag, rel=1e-6)
+    for key, base in (("errors_per_diagonal", "errors"), ("errors_aligned_per_diagonal", "errors_aligned")):
+        for m, per_u in r[base].items():
+            for u, per_h in per_u.items():
+                for h, e in per_h.items():
+                    assert r[key][m][u][h] == pytest.approx(e * 1e-4 / diag, rel=1e-9)
     assert len(r["feature_change"]["ours"]) == 10 and r["feature_change"]["ground_truth"] > 0
     assert set(r["completion"]["3"]) >= {"ours", "cma", "linear", "diversity"}
     assert any("Tan et al" in n for n in r["notes"])

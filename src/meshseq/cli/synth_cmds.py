@@ -285,12 +285,18 @@ def cmd_evaluate(args) -> int:
         result["notes"].append(f"the run was trained with stride {stride}: one predicted step = {stride} frames")
     if vae is not None:
         result["notes"].append(baselines.VAE_NOTE)
+    # scale-free errors: per bounding-box diagonal of the first held-out frame (data units)
+    diagonal = float(np.linalg.norm(np.ptp(np.asarray(vertices[lo], dtype=np.float64), axis=0)))
+    result["diagonal"] = diagonal
     for u in given:
         errs = evaluate.prediction_errors(model, vertices, feats, lo, hi, u, horizons, methods, vae=vae)
         for m, r in errs.items():
             result["errors"].setdefault(m, {})[f"u{u}"] = r["centroid"]
             result["errors_aligned"].setdefault(m, {})[f"u{u}"] = r["rigid"]
             result["curves"].setdefault(m, {})[f"u{u}"] = r["curve"]
+            for key, src in (("errors_per_diagonal", "centroid"), ("errors_aligned_per_diagonal", "rigid")):
+                result.setdefault(key, {}).setdefault(m, {})[f"u{u}"] = {
+                    h: e * evaluate.UNITS / diagonal for h, e in r[src].items()}
             result.setdefault("starts", {})[f"u{u}"] = r["starts"]
     # two given frames, so the extrapolating baselines have a velocity to continue
     starts = evaluate.prediction_starts(lo, hi, 2, 0)
