@@ -40,7 +40,7 @@ def train_run(data: Path, run: Path, variant: str, args) -> dict:
     from meshseq.train import RECIPES, TrainConfig, load_training_data, train
 
     model_opts, weights = VARIANTS[variant]
-    options = {**RECIPES[args.recipe]["train"], **weights}
+    options = {**RECIPES[args.recipe], **weights}
     config = TrainConfig(iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride,
                          seed=args.seed, checkpoint_every=max(50, args.iterations // 4), eval_every=0,
                          holdout=HOLDOUT.get(data.stem, 0.2), **options)

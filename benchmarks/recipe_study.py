@@ -94,6 +94,8 @@ def evaluate_checkpoint(path: Path, verts: list[np.ndarray], feats_raw: list[np.
     """Validation metrics of one checkpoint, averaged over sequences (weighted by their starts)."""
     import meshseq
     from meshseq.evaluate import feature_change, prediction_errors, prediction_starts
+    from meshseq.mesh import bounding_box_diagonal
+    from meshseq.plots import feature_change as relative_change
 
     model = meshseq.load(path)
     methods = ["ours", "zero_velocity", "linear_acap"]
@@ -102,7 +104,7 @@ def evaluate_checkpoint(path: Path, verts: list[np.ndarray], feats_raw: list[np.
     for v, f, split in zip(verts, feats_raw, splits):
         lo, hi = split.heldout
         scaled = model.scaling.apply(f).astype(np.float32)
-        diag = float(np.linalg.norm(v[0].max(0) - v[0].min(0)))
+        diag = bounding_box_diagonal(v[0])
         for u in givens:
             try:
                 res = prediction_errors(model, v, scaled, lo, hi, u, list(horizons), methods)
@@ -121,10 +123,7 @@ def evaluate_checkpoint(path: Path, verts: list[np.ndarray], feats_raw: list[np.
         if len(starts):
             fc = feature_change(model, scaled, starts, 1, motion_frames, ["ours"])
             motion.append(float(np.mean(fc["ours"])))
-            seg = f[lo:hi]
-            from meshseq.plots import feature_change as rel
-
-            truth_level.append(float(rel(seg).mean()))
+            truth_level.append(float(relative_change(f[lo:hi]).mean()))
     errors = {}
     for (m, u, key, h), (e, ed, n) in acc.items():
         errors.setdefault(m, {}).setdefault(f"u{u}", {}).setdefault(key, {})[str(h)] = e / n
@@ -152,8 +151,8 @@ def run_study(args) -> dict:
     torch.set_num_threads(args.threads)
     specs = data_specs(args.data, args.bodies)
     data, verts = development_data(specs)
-    options = dict(RECIPES[args.recipe]["train"])
-    model_options = dict(RECIPES[args.recipe]["model"])
+    options = dict(RECIPES[args.recipe])
+    model_options = {}
     sets = parse_sets(args.set)
     for k, v in sets.items():
         if k in ("latent", "lstm_layers", "conv_layers", "variant"):

@@ -13,6 +13,7 @@ from meshseq.errors import MeshseqError
 from meshseq.mesh import Topology
 from meshseq.model import BDLSTM, ModelConfig
 from meshseq.train import (
+    RECIPE_OPTIONS,
     RECIPES,
     TrainConfig,
     TrainingData,
@@ -137,10 +138,12 @@ def test_given_option_is_checked_and_recipes_are_known_options():
     with pytest.raises(MeshseqError, match="--step-scale"):
         TrainConfig(step_scale="big")
     for name, recipe in RECIPES.items():
-        TrainConfig(**recipe["train"])  # every recipe is valid
-        assert set(recipe["model"]) <= {"latent", "lstm_layers", "conv_layers", "variant"}
-    assert RECIPES["paper"]["train"]["w_l2"] == 0.1 and RECIPES["paper"]["train"]["given"] == 1
-    assert RECIPES["paper"]["train"]["step_scale"] == "none"
+        TrainConfig(**recipe)  # every recipe is valid
+        assert set(recipe) == set(RECIPE_OPTIONS)  # and sets every recipe option
+    assert RECIPES["paper"]["w_l2"] == 0.1 and RECIPES["paper"]["given"] == 1
+    assert RECIPES["paper"]["step_scale"] == "none"
+    default = TrainConfig()
+    assert all(getattr(default, k) == v for k, v in RECIPES["default"].items())
 
 
 def test_step_scale_data_is_stored_and_reloaded(tmp_path):
@@ -210,7 +213,7 @@ def test_cli_recipe_sets_the_options_and_flags_override(tmp_path):
     assert train_opts["w_l2"] == 0.1 and train_opts["input_norm"] is False and model_opts["input_norm"] is False
     assert main(["train", str(data), "--out", str(tmp_path / "d"), *common]) == 0
     train_opts, model_opts = stored(tmp_path / "d")
-    assert train_opts["w_l2"] == RECIPES["default"]["train"]["w_l2"] and model_opts["input_norm"] is True
+    assert train_opts["w_l2"] == RECIPES["default"]["w_l2"] and model_opts["input_norm"] is True
     assert main(["train", str(data), "--out", str(tmp_path / "o"), "--recipe", "paper", "--input-norm",
                  "--w-l2", "0.5", "--given", "2", *common]) == 0
     train_opts, model_opts = stored(tmp_path / "o")

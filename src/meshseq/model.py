@@ -86,7 +86,6 @@ class ModelConfig:
     step_scale: list[float] | None = None
     input_norm: bool = False
 
-
     def __post_init__(self):
         if self.variant not in VARIANTS:
             raise MeshseqError(f"--variant {self.variant!r}: expected one of {', '.join(VARIANTS)}")
@@ -542,26 +541,25 @@ class BDLSTM(nn.Module):
         """
         B, n = windows.shape[:2]
         given = max(1, min(int(given), n))
-        if self.config.variant == "uni":
-            chains, n_forward = windows, None
-            state = self.initial_state(B, 0, windows.device, windows.dtype)
-        else:
-            chains, n_forward = torch.cat([windows, windows.flip(1)]), B  # forward, then backward
-            state = self.initial_state(B, B, windows.device, windows.dtype)
-        outs, mus, logvars = [chains[:, :1]], [], []
+        uni = self.config.variant == "uni"
+        n_forward = None if uni else B  # rows: forward chains, then backward chains
+        state = self.initial_state(B, 0 if uni else B, windows.device, windows.dtype)
+
+        def first(i):  # the chains' i-th true frame (B or 2B, V, C)
+            return windows[:, i] if uni else torch.cat([windows[:, i], windows[:, n - 1 - i]])
+
+        outs, mus, logvars = [], [], []
         for i in range(given - 1):  # teacher-forced warm-up: one step from each true frame
-            frames, mu, logvar, state = self.rollout(chains[:, i], 1, state, sample=sample, n_forward=n_forward)
-            outs.append(frames[:, 1:])
+            frames, mu, logvar, state = self.rollout(first(i), 1, state, sample=sample, n_forward=n_forward)
+            outs.append(frames if i == 0 else frames[:, 1:])  # the first keeps the true frame 0
             mus.append(mu)
             logvars.append(logvar)
-        frames, mu, logvar, _ = self.rollout(chains[:, given - 1], n - given, state, sample=sample,
+        frames, mu, logvar, _ = self.rollout(first(given - 1), n - given, state, sample=sample,
                                              n_forward=n_forward)
-        outs.append(frames[:, 1:])
-        mus.append(mu)
-        logvars.append(logvar)
-        frames = torch.cat(outs, 1) if len(outs) > 1 else outs[0]
-        mu, logvar = torch.cat(mus), torch.cat(logvars)
-        if self.config.variant == "uni":
+        if outs:  # after the warm-up: its frames, then the free chain without its (true) first frame
+            frames = torch.cat(outs + [frames[:, 1:]], 1)
+            mu, logvar = torch.cat(mus + [mu]), torch.cat(logvars + [logvar])
+        if uni:
             return {"forward": frames, "backward": None, "mu": mu, "logvar": logvar}
         return {"forward": frames[:B], "backward": frames[B:], "mu": mu, "logvar": logvar}
 

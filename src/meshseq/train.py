@@ -58,42 +58,6 @@ METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "laten
 
 STEP_SCALES = ("none", "data")
 
-#: Named training recipes: option values for TrainConfig ("train") and ModelConfig ("model").
-#:
-#: ``paper``: the paper's recipe read literally (method.md 3): L_rec + 0.5 L_bd + 0.1 (L_KL + L_2),
-#: L_2 the sum of squared weights, chains free-running from one frame, the encoder fed the scaled
-#: features as they are.
-#:
-#: ``default`` departs from it in two ways, each measured by controlled runs (same seed, data and
-#: budget; ``benchmarks/recipe_study.py``, docs/results.md "Why the model froze"): on 16 body
-#: sequences (1,000 vertices, 8 x 32 frames, 600 iterations), validation error at horizon 15
-#: after 1 given frame (x 1e-4; zero velocity 1030):
-#:
-#: * ``w_l2 = 0`` (paper 0.1). With 9.2 million FC weights tied between encoder and decoder, 0.1
-#:   times their sum of squares outweighs L_rec (900 against 10 at the start) and Adam shrinks
-#:   the FC toward zero: the latent's spread over frames falls to 4e-6, KL to 0.005 nats, and the
-#:   roll-out freezes (paper recipe: 1052, worse than zero velocity). Without L_2: 834.
-#: * ``input_norm = True`` (paper: no normalisation). The scaled features of two frames differ by
-#:   a few hundredths (the [-0.95, 0.95] range is spent on the accumulated angles), so the
-#:   encoder's output hardly depends on the frame (latent spread 0.006 against the sampling
-#:   noise's 1) and the LSTM learns from noise. Centring every vertex-channel on the mean
-#:   training frame and dividing by the spread around it (encoder input only; the output is
-#:   still the change in the scaled space) gives a latent spread of 0.19 and 442 (0.43 x zero
-#:   velocity), with KL alive at 2.5 nats.
-#:
-#: Measured and left out: ``step_scale = "data"`` (decoder output in units of the RMS frame
-#: change) learns slower (held-out L_rec 6.5 against 4.3 at 600 iterations); a deterministic
-#: latent (no noise, no KL) changed little without the normalisation (864 against 834).
-RECIPES = {
-    "paper": {"train": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "given": 1, "step_scale": "none",
-                        "input_norm": False},
-              "model": {}},
-    "default": {"train": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.0, "given": 1, "step_scale": "none",
-                          "input_norm": True},
-                "model": {}},
-}
-
-
 @dataclass
 class TrainConfig:
     """Training options; stored in every checkpoint's JSON."""
@@ -107,7 +71,7 @@ class TrainConfig:
     w_rec: float = 1.0
     w_bd: float = 0.5
     w_kl: float = 0.1
-    w_l2: float = 0.0  # the default recipe (RECIPES); the paper: 0.1
+    w_l2: float = 0.0  # the default recipe (RECIPES, below); the paper: 0.1
     holdout: float = 0.2
     holdout_at: str = "end"
     scaling: str = "two-group"
@@ -148,6 +112,40 @@ class TrainConfig:
     def from_dict(d: dict) -> "TrainConfig":
         known = {f.name for f in fields(TrainConfig)}
         return TrainConfig(**{k: v for k, v in d.items() if k in known})
+
+
+#: Named training recipes: values of the TrainConfig options in ``RECIPE_OPTIONS``.
+#:
+#: ``paper``: the paper's recipe read literally (method.md 3): L_rec + 0.5 L_bd + 0.1 (L_KL + L_2),
+#: L_2 the sum of squared weights, chains free-running from one frame, the encoder fed the scaled
+#: features as they are.
+#:
+#: ``default`` (TrainConfig's defaults) departs from it in two ways, each measured by controlled runs (same seed, data and
+#: budget; ``benchmarks/recipe_study.py``, docs/results.md "Why the model froze"): on 16 body
+#: sequences (1,000 vertices, 8 x 32 frames, 600 iterations), validation error at horizon 15
+#: after 1 given frame (x 1e-4; zero velocity 1030):
+#:
+#: * ``w_l2 = 0`` (paper 0.1). With 9.2 million FC weights tied between encoder and decoder, 0.1
+#:   times their sum of squares outweighs L_rec (900 against 10 at the start) and Adam shrinks
+#:   the FC toward zero: the latent's spread over frames falls to 4e-6, KL to 0.005 nats, and the
+#:   roll-out freezes (paper recipe: 1052, worse than zero velocity). Without L_2: 834.
+#: * ``input_norm = True`` (paper: no normalisation). The scaled features of two frames differ by
+#:   a few hundredths (the [-0.95, 0.95] range is spent on the accumulated angles), so the
+#:   encoder's output hardly depends on the frame (latent spread 0.006 against the sampling
+#:   noise's 1) and the LSTM learns from noise. Centring every vertex-channel on the mean
+#:   training frame and dividing by the spread around it (encoder input only; the output is
+#:   still the change in the scaled space) gives a latent spread of 0.19 and 442 (0.43 x zero
+#:   velocity), with KL alive at 2.5 nats.
+#:
+#: Measured and left out: ``step_scale = "data"`` (decoder output in units of the RMS frame
+#: change) learns slower (held-out L_rec 6.5 against 4.3 at 600 iterations); a deterministic
+#: latent (no noise, no KL) changed little without the normalisation (864 against 834).
+RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "given", "step_scale", "input_norm")
+RECIPES = {
+    "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "given": 1, "step_scale": "none",
+              "input_norm": False},
+    "default": {name: TrainConfig.__dataclass_fields__[name].default for name in RECIPE_OPTIONS},
+}
 
 
 # --------------------------------------------------------------------------------------------
@@ -479,23 +477,22 @@ def train(
             raise MeshseqError(f"--holdout {config.holdout}: leaves no training frames")
         scaling = Scaling.fit(train_feats, mode=config.scaling)
         model_config.input_norm = bool(config.input_norm)
-        if config.step_scale == "data":
-            spread = step_spread([scaling.apply(f) for f in data.features], splits, config.stride)
-            model_config.step_scale = [float(v) for v in spread]
 
+    scaled = [scaling.apply(f) for f in data.features]  # (T_d, V, 9) float64 each
+    if found is None and config.step_scale == "data":
+        model_config.step_scale = [float(v) for v in step_spread(scaled, splits, config.stride)]
     if config.batch % dist_info.world:
         raise MeshseqError(f"--batch {config.batch} must be a multiple of the number of processes ({dist_info.world})")
     sampler = WindowSampler(splits, data.names, config.window, config.stride)
     eval_rows = heldout_rows(splits, config.window, config.stride)
-    stacked = np.concatenate([scaling.apply(f) for f in data.features]).astype(np.float32)
-    frames = torch.from_numpy(stacked).to(dev)  # (sum T, V, 9)
+    frames = torch.from_numpy(np.concatenate(scaled).astype(np.float32)).to(dev)  # (sum T, V, 9)
 
     torch.manual_seed(config.seed)
     random.seed(config.seed)
     np_rng = np.random.default_rng(config.seed)
     model = BDLSTM(model_config, topo)
     if model_config.input_norm and found is None:
-        model.set_input_norm(np.concatenate([scaling.apply(f[s.train_frames()]) for f, s in zip(data.features, splits)]))
+        model.set_input_norm(np.concatenate([x[s.train_frames()] for x, s in zip(scaled, splits)]))
     model = model.to(dev)
     names = [n for n, _ in model.named_parameters()]
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(0.9, 0.999))

@@ -255,6 +255,7 @@ def cmd_complete(args) -> int:
 def cmd_evaluate(args) -> int:
     from meshseq import baselines, evaluate
     from meshseq.io import atomic_output, check_output
+    from meshseq.mesh import bounding_box_diagonal
 
     if args.json_out:
         check_output(args.json_out, force=args.force)
@@ -286,7 +287,7 @@ def cmd_evaluate(args) -> int:
     if vae is not None:
         result["notes"].append(baselines.VAE_NOTE)
     # scale-free errors: per bounding-box diagonal of the first held-out frame (data units)
-    diagonal = float(np.linalg.norm(np.ptp(np.asarray(vertices[lo], dtype=np.float64), axis=0)))
+    diagonal = bounding_box_diagonal(np.asarray(vertices[lo], dtype=np.float64))
     result["diagonal"] = diagonal
     for u in given:
         errs = evaluate.prediction_errors(model, vertices, feats, lo, hi, u, horizons, methods, vae=vae)

@@ -91,10 +91,10 @@ def _train(args) -> int:
     if out.is_dir() and any(out.iterdir()) and not (args.resume or args.force):
         raise MeshseqError(f"--out {out}: already exists and is not empty (use --resume to continue it "
                            "or --force to start over)")
-    from meshseq.train import RECIPES
+    from meshseq.train import RECIPE_OPTIONS, RECIPES
 
-    recipe = dict(RECIPES[args.recipe]["train"])
-    for name in ("w_rec", "w_bd", "w_kl", "w_l2", "given", "step_scale", "input_norm"):
+    recipe = dict(RECIPES[args.recipe])
+    for name in RECIPE_OPTIONS:
         if getattr(args, name) is not None:
             recipe[name] = getattr(args, name)
     if args.no_kl:

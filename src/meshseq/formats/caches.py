@@ -78,16 +78,21 @@ def read_mdd(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     n_frames, n_points = (int(x) for x in np.frombuffer(data, ">i4", 2))
     if n_frames < 1 or n_points < 1:
         raise MeshseqError(f"{path}: MDD header says {n_frames} frames of {n_points} points; not an MDD file?")
-    expected = 8 + 4 * n_frames + 12 * n_frames * n_points
-    if len(data) < expected:
-        raise MeshseqError(f"{path}: MDD header promises {n_frames} frames of {n_points} points "
-                           f"({expected} bytes) but the file has {len(data)} bytes; truncated file?")
-    if len(data) > expected:
-        raise MeshseqError(f"{path}: MDD file has {len(data) - expected} bytes more than its header "
-                           f"({n_frames} frames of {n_points} points) describes; not an MDD file?")
+    _check_size(path, "MDD", data, 8 + 4 * n_frames + 12 * n_frames * n_points,
+                f"{n_frames} frames of {n_points} points", "; not an MDD file?")
     times = np.frombuffer(data, ">f4", n_frames, offset=8).astype(np.float64)
     vertices = np.frombuffer(data, ">f4", 3 * n_frames * n_points, offset=8 + 4 * n_frames)
     return vertices.reshape(n_frames, n_points, 3).astype(np.float64), times
+
+
+def _check_size(path: Path, kind: str, data: bytes, expected: int, contents: str, extra_hint: str = "") -> None:
+    """One-line error unless a cache file is exactly the ``expected`` bytes its header promises."""
+    if len(data) < expected:
+        raise MeshseqError(f"{path}: {kind} header promises {contents} ({expected} bytes) but the file has "
+                           f"{len(data)} bytes; truncated file?")
+    if len(data) > expected:
+        raise MeshseqError(f"{path}: {kind} file has {len(data) - expected} bytes more than its header "
+                           f"({contents}) describes{extra_hint}")
 
 
 def mdd_bytes(vertices: np.ndarray, fps: float) -> bytes:
@@ -120,13 +125,8 @@ def read_pc2(path: str | os.PathLike) -> tuple[np.ndarray, float, float]:
     n_points, n_samples = int(head["points"]), int(head["samples"])
     if n_points < 1 or n_samples < 1:
         raise MeshseqError(f"{path}: PC2 header says {n_samples} samples of {n_points} points")
-    expected = _PC2_HEADER.itemsize + 12 * n_points * n_samples
-    if len(data) < expected:
-        raise MeshseqError(f"{path}: PC2 header promises {n_samples} samples of {n_points} points "
-                           f"({expected} bytes) but the file has {len(data)} bytes; truncated file?")
-    if len(data) > expected:
-        raise MeshseqError(f"{path}: PC2 file has {len(data) - expected} bytes more than its header "
-                           f"({n_samples} samples of {n_points} points) describes")
+    _check_size(path, "PC2", data, _PC2_HEADER.itemsize + 12 * n_points * n_samples,
+                f"{n_samples} samples of {n_points} points")
     vertices = np.frombuffer(data, "<f4", 3 * n_points * n_samples, offset=_PC2_HEADER.itemsize)
     return (vertices.reshape(n_samples, n_points, 3).astype(np.float64), float(head["start"]),
             float(head["rate"]))
