@@ -1,6 +1,8 @@
 """The paper's experiments on this repository's real data: train, evaluate, write the tables.
 
-For every data set (default: pcow, crane, horse-gallop from ../shared/data) and every variant
+For every data set (default: pcow, crane, horse-gallop from ../shared/data, and ``bodies``: a
+Dyna-like body set from ``meshseq make-bodies``, several subjects x motions trained together and
+evaluated per sequence, 20% held out per sequence) and every variant
 (bd = ours, std-bd, uni, no-kl = bd without L_KL), train a model for ``--iterations`` (resuming
 runs already in ``--out``), evaluate it on the held-out 20% (``meshseq evaluate``), and write:
 
@@ -14,6 +16,10 @@ as Markdown to ``--results`` (default docs/results.md) with the iterations, the 
 machine. Example (what docs/results.md records):
 
     python benchmarks/paper.py --data pcow --iterations 600 --variants bd,uni,std-bd,no-kl
+    python benchmarks/paper.py --data bodies --iterations 1500 --variants bd
+
+``--data bodies`` uses ``--bodies FILE.h5`` and makes it first when it is missing (``BODY_SET``,
+the arguments of ``meshseq make-bodies``; about 2 minutes).
 """
 
 from __future__ import annotations
@@ -32,30 +38,58 @@ SHARED = Path(os.environ.get("MESHSEQ_SHARED_DATA", ROOT.parent / "shared" / "da
 #: Held-out fraction per data set: horse-gallop has 48 frames, and 20% (10 frames) leaves no room
 #: for 3 given frames and a horizon of 15; its frames 25-48 repeat 1-24 anyway (see the data README).
 HOLDOUT = {"horse-gallop": 0.4}
+#: The body set of ``--data bodies`` (``meshseq make-bodies`` arguments): 4 subjects x 4 motions,
+#: 120 frames at 1,000 vertices; the same set as the recipe study (docs/recipe_study.md).
+BODY_SET = ["--subjects", "female_fit,male_heavy,female_old,male_slim",
+            "--motions", "punch,shake_arms,jumping_jacks,walk", "--frames", "120", "--vertices", "1000"]
+GAPS = "10,20"  # completion gaps (issue 12's targets)
+BASELINES = ("zero_velocity", "linear_acap", "vae_latent")
 VARIANTS = {"bd": ({"variant": "bd"}, {}), "std-bd": ({"variant": "std-bd"}, {}),
             "uni": ({"variant": "uni"}, {}), "no-kl": ({"variant": "bd"}, {"w_kl": 0.0})}
 
 
-def train_run(data: Path, run: Path, variant: str, args) -> dict:
+def dataset_specs(name: str, args) -> list[str]:
+    """The sequences of data set ``name``: one .npz of ../shared/data, or every sequence of the
+    body set (made first when ``--bodies`` is missing)."""
+    if name != "bodies":
+        data = SHARED / f"{name}.npz"
+        if not data.is_file():
+            raise SystemExit(f"{data}: not found (set MESHSEQ_SHARED_DATA)")
+        return [str(data)]
+    import h5py
+
+    from meshseq.cli import main as cli
+
+    bodies = Path(args.bodies)
+    if not bodies.is_file():
+        print(f"== making the body set {bodies}: meshseq make-bodies {' '.join(BODY_SET)}", flush=True)
+        bodies.parent.mkdir(parents=True, exist_ok=True)
+        if cli(["make-bodies", *BODY_SET, "-o", str(bodies), "--quiet"]) != 0:
+            raise SystemExit(f"making {bodies} failed")
+    with h5py.File(bodies, "r") as fh:
+        return [f"{bodies}:{k}" for k in sorted(fh.keys()) if k != "faces"]
+
+
+def train_run(specs: list[str], name: str, run: Path, variant: str, args) -> dict:
     from meshseq.train import RECIPES, TrainConfig, load_training_data, train
 
     model_opts, weights = VARIANTS[variant]
     options = {**RECIPES[args.recipe], **weights}
     config = TrainConfig(iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride,
                          seed=args.seed, checkpoint_every=max(50, args.iterations // 4), eval_every=0,
-                         holdout=HOLDOUT.get(data.stem, 0.2), **options)
+                         holdout=HOLDOUT.get(name, 0.2), **options)
     t0 = time.perf_counter()
-    out = train(load_training_data([str(data)]), run, config, model_options=dict(model_opts, latent=args.latent),
+    out = train(load_training_data(specs), run, config, model_options=dict(model_opts, latent=args.latent),
                 device=args.device, resume=True, progress=not args.quiet)
     return {"seconds": time.perf_counter() - t0, "iteration": out["iteration"], "loss": out["loss"]}
 
 
-def evaluate_run(data: Path, run: Path, out_json: Path, plots: Path | None, args, baselines: bool) -> dict:
+def evaluate_run(data: str, run: Path, out_json: Path, plots: Path | None, args, baselines: bool) -> dict:
     from meshseq.cli import main
 
-    argv = ["evaluate", str(run), str(data), "--json", str(out_json), "--force", "--device", args.device,
+    argv = ["evaluate", str(run), data, "--json", str(out_json), "--force", "--device", args.device,
             "--vae-iterations", str(args.vae_iterations), "--cma-evals", str(args.cma_evals),
-            "--cma-seconds", str(args.cma_seconds)]
+            "--cma-seconds", str(args.cma_seconds), "--gaps", args.gaps]
     if not baselines:
         argv += ["--methods", "ours", "--gaps", "none"]
     if plots is not None:
@@ -63,6 +97,65 @@ def evaluate_run(data: Path, run: Path, out_json: Path, plots: Path | None, args
     if main(argv) != 0:
         raise SystemExit(f"evaluation of {run} failed")
     return json.loads(out_json.read_text())
+
+
+def _weighted(values: list[float], weights: list[float]) -> float:
+    return float(sum(v * w for v, w in zip(values, weights)) / max(sum(weights), 1e-30))
+
+
+def combine_results(per_sequence: list[dict]) -> dict:
+    """One result from the evaluations of several sequences of one run (``meshseq evaluate
+    --json`` each): errors averaged over every start of every sequence (weights: the starts per
+    number of given frames), completion over every gap's starts, Fig. 3 curves averaged."""
+    if len(per_sequence) == 1:
+        return per_sequence[0]
+    first = per_sequence[0]
+    out = {"dataset": f"{len(per_sequence)} sequences", "range": first["range"], "units": first["units"],
+           "iteration": first["iteration"], "variant": first["variant"],
+           "notes": sorted({n for r in per_sequence for n in r.get("notes", [])}),
+           "sequences": {r["dataset"]: {"range": r["range"], "errors": r["errors"]} for r in per_sequence}}
+    for key in ("errors", "errors_aligned", "errors_per_diagonal", "errors_aligned_per_diagonal"):
+        if key not in first:
+            continue
+        out[key] = {m: {u: {h: _weighted([r[key][m][u][h] for r in per_sequence],
+                                         [r["starts"][u] for r in per_sequence]) for h in per_h}
+                        for u, per_h in per_u.items()} for m, per_u in first[key].items()}
+    out["starts"] = {u: sum(r["starts"][u] for r in per_sequence) for u in first["starts"]}
+    fc = first["feature_change"]
+    out["feature_change"] = {m: ([sum(r["feature_change"][m][i] for r in per_sequence) / len(per_sequence)
+                                  for i in range(len(c))] if isinstance(c, list) else
+                                 sum(r["feature_change"][m] for r in per_sequence) / len(per_sequence))
+                             for m, c in fc.items()}
+    if "completion" in first:
+        out["completion"] = {}
+        for gap in first["completion"]:
+            rs = [r["completion"][gap] for r in per_sequence if gap in r.get("completion", {})]
+            w = [c["starts"] for c in rs]
+            out["completion"][gap] = {k: _weighted([c[k] for c in rs], w) for k in rs[0] if k != "starts"}
+            out["completion"][gap]["starts"] = sum(w)
+    return out
+
+
+def target_rows(result: dict) -> list[str]:
+    """Issue 12's prediction targets at horizons 10 and 15: ours against the best baseline, raw
+    and rigidly aligned, in data units x 1e-4 and per bounding-box diagonal."""
+    lines = ["Targets (prediction, h = 10 and 15): ours against the best of "
+             + ", ".join(b for b in BASELINES if b in result["errors"]) + "; ratio < 1 = ours better:", "",
+             "| given, horizon | ours | best baseline | ratio | rigid: ours | best | ratio | ours per diagonal |",
+             "|---|---|---|---|---|---|---|---|"]
+    for u in ("u1", "u3"):
+        for h in ("10", "15"):
+            cells = []
+            for key in ("errors", "errors_aligned"):
+                errs = result[key]
+                base = {b: errs[b][u][h] for b in BASELINES if b in errs}
+                best = min(base, key=base.get)
+                ours = errs["ours"][u][h]
+                cells += [f"{ours:.1f}", f"{base[best]:.1f} ({best})", f"{ours / base[best]:.2f}"]
+            per_diag = result.get("errors_per_diagonal", {}).get("ours", {}).get(u, {}).get(h)
+            cells.append("-" if per_diag is None else f"{per_diag:.4f}")
+            lines.append(f"| {u[1]}, {h} | " + " | ".join(cells) + " |")
+    return lines + [""]
 
 
 def _row(values: dict, keys) -> str:
@@ -81,18 +174,24 @@ def write_markdown(summaries: dict, device: str, path: Path) -> None:
         "7000 iterations of 8 windows x 32 frames (about 8 hours on a Tesla K40c); the runs here are far "
         "shorter (CPU), as each section says. Errors: mean per-vertex distance in the data's units x 1e-4 on "
         "the held-out end of each sequence, averaged over every start with enough frames; translation "
-        "removed (centroids), and in the second table also the best rotation.",
+        "removed (centroids), and in the second table also the best rotation. Each section names its "
+        "recipe; the tables measured earlier with the paper's literal recipe are in "
+        "[results-paper-recipe.md](results-paper-recipe.md).",
         "",
     ]
     for name, summ in summaries.items():
         per_variant, runs, cfg = summ["results"], summ["runs"], summ["config"]
         its = ", ".join(f"{v} {r['iteration']}" for v, r in per_variant.items())
+        seqs = sorted(per_variant[next(iter(per_variant))].get("sequences", {}))
         lines += [f"## {name}", "",
-                  f"Command: `python benchmarks/paper.py {' '.join(summ['argv'])}`. Iterations: {its}; "
+                  f"Command: `python benchmarks/paper.py {' '.join(summ['argv'])}`. Recipe: "
+                  f"{summ.get('recipe', 'default')}. Iterations: {its}; "
                   f"{cfg['batch']} windows x {cfg['window']} frames, stride {cfg['stride']}, latent {cfg['latent']}; "
-                  f"held-out frames {per_variant[next(iter(per_variant))]['range']}.", ""]
+                  f"held-out frames {per_variant[next(iter(per_variant))]['range']}"
+                  + (f" of each of its {len(seqs)} sequences ({', '.join(seqs)})" if seqs else "") + ".", ""]
         bd = per_variant.get("bd")
         if bd:
+            lines += target_rows(bd)
             lines += ["Table 2 (methods; ours = shared-weight BD-LSTM):", "",
                       f"| method | {head} |", "|---" * (len(keys) + 1) + "|"]
             for m, per_u in bd["errors"].items():
@@ -109,9 +208,12 @@ def write_markdown(summaries: dict, device: str, path: Path) -> None:
         lines.append("")
         if bd and "completion" in bd:
             lines += ["Completion (in-between error x 1e-4; diversity: mean distance between 4 random-state samples):",
-                      "", "| gap | ours | CMA-ES | linear | diversity |", "|---|---|---|---|---|"]
+                      "", "| gap | ours | CMA-ES | linear (ACAP) | linear (vertices) | diversity |",
+                      "|---|---|---|---|---|---|"]
             for gap, r in bd["completion"].items():
-                lines.append(f"| {gap} | {r['ours']:.1f} | {r['cma']:.1f} | {r['linear']:.1f} | {r.get('diversity', 0):.1f} |")
+                vert = f"{r['linear_vertices']:.1f}" if "linear_vertices" in r else "-"
+                lines.append(f"| {gap} | {r['ours']:.1f} | {r['cma']:.1f} | {r['linear']:.1f} | {vert} | "
+                             f"{r.get('diversity', 0):.1f} |")
             lines.append("")
         if bd:
             fc = bd["feature_change"]
@@ -132,7 +234,11 @@ def write_markdown(summaries: dict, device: str, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default="pcow,crane,horse-gallop", help="names in ../shared/data (without .npz)")
+    ap.add_argument("--data", default="pcow,crane,horse-gallop",
+                    help="names in ../shared/data (without .npz), or bodies (--bodies)")
+    ap.add_argument("--bodies", default=str(ROOT / "runs" / "bodies1k.h5"),
+                    help="the body set of --data bodies (made with BODY_SET when missing)")
+    ap.add_argument("--gaps", default=GAPS, help="completion gaps (meshseq evaluate --gaps)")
     ap.add_argument("--variants", default="bd,std-bd,uni,no-kl")
     ap.add_argument("--recipe", default="default", help="training recipe (meshseq.train.RECIPES): default or paper")
     ap.add_argument("--iterations", type=int, default=500)
@@ -147,38 +253,73 @@ def main() -> None:
     ap.add_argument("--cma-seconds", type=float, default=30.0)
     ap.add_argument("--out", default=str(ROOT / "runs" / "paper"))
     ap.add_argument("--results", default=str(ROOT / "docs" / "results.md"))
+    ap.add_argument("--records", default=str(ROOT / "docs" / "results"),
+                    help="one summary JSON per data set; the Markdown is made from every record here")
+    ap.add_argument("--markdown-only", action="store_true",
+                    help="train nothing: write --results from the records in --records")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args()
+    if args.markdown_only:
+        write_markdown(collect(Path(args.records)), args.device, Path(args.results))
+        print(f"wrote {args.results}")
+        return
     args.argv = [a for a in os.sys.argv[1:]]
     out = Path(args.out)
     results, runs = {}, {}
     img = Path(args.results).parent / "img"  # noqa: the Fig. 3 PNGs go beside the Markdown
     for name in [d.strip() for d in args.data.split(",") if d.strip()]:
-        data = SHARED / f"{name}.npz"
-        if not data.is_file():
-            raise SystemExit(f"{data}: not found (set MESHSEQ_SHARED_DATA)")
+        specs = dataset_specs(name, args)
         results[name], runs[name] = {}, {}
         for variant in [v.strip() for v in args.variants.split(",") if v.strip()]:
             run = out / name / variant
             print(f"== {name} / {variant}: training {args.iterations} iterations -> {run}", flush=True)
-            runs[name][variant] = train_run(data, run, variant, args)
-            plots = run / "plots" if variant == "bd" else None
-            r = evaluate_run(data, run, run / "evaluation.json", plots, args, baselines=variant == "bd")
-            results[name][variant] = r
-            if plots is not None:
+            runs[name][variant] = train_run(specs, name, run, variant, args)
+            per_sequence = []
+            for i, spec in enumerate(specs):
+                plots = run / "plots" if variant == "bd" and len(specs) == 1 else None
+                suffix = "" if len(specs) == 1 else "_" + spec.rsplit(":", 1)[-1]
+                per_sequence.append(evaluate_run(spec, run, run / f"evaluation{suffix}.json", plots, args,
+                                                 baselines=variant == "bd"))
+            r = results[name][variant] = combine_results(per_sequence)
+            if variant == "bd":
                 img.mkdir(parents=True, exist_ok=True)
-                (img / f"feature_change_{name}.png").write_bytes((plots / "feature_change.png").read_bytes())
+                _feature_change_png(r, name, img / f"feature_change_{name}.png")
             config = {k: getattr(args, k) for k in ("iterations", "batch", "window", "stride", "latent")}
-            (out / name / "summary.json").write_text(json.dumps(
-                {"results": results[name], "runs": runs[name], "config": config, "argv": args.argv}))
-            # after every run, from every data set finished in --out (also by other invocations)
-            write_markdown(collect(out), args.device, Path(args.results))
+            summary = json.dumps({"results": results[name], "runs": runs[name], "config": config,
+                                  "argv": args.argv, "recipe": args.recipe, "device": args.device})
+            (out / name / "summary.json").write_text(summary)
+            _write_text(Path(args.records) / f"{name}.json", summary)
+            # after every run, from every data set recorded (also by earlier invocations)
+            write_markdown(collect(Path(args.records)), args.device, Path(args.results))
     print(f"wrote {args.results}")
 
 
-def collect(out: Path) -> dict:
-    """``{data set: summary}`` of every data set with a summary.json in ``out``."""
-    return {p.parent.name: json.loads(p.read_text()) for p in sorted(out.glob("*/summary.json"))}
+def _write_text(path: Path, text: str) -> None:
+    from meshseq.io import atomic_output
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(path, force=True) as tmp:
+        Path(tmp).write_text(text)
+
+
+def _feature_change_png(result: dict, name: str, path: Path) -> None:
+    """Fig. 3 of one data set (curves averaged over its sequences) as a PNG."""
+    import numpy as np
+
+    from meshseq import plots
+
+    fc = result["feature_change"]
+    fig = plots.feature_change_curve({m: np.array(c) for m, c in fc.items() if m != "ground_truth"},
+                                     title=f"{name}: feature change (ground truth mean {fc['ground_truth']:.3g})")
+    ax = fig.axes[0]
+    ax.axhline(fc["ground_truth"], color="k", ls="--", label="ground truth")
+    ax.legend()
+    plots.save_figure(fig, path)
+
+
+def collect(records: Path) -> dict:
+    """``{data set: summary}`` of every data set recorded in ``records`` (``NAME.json``)."""
+    return {p.stem: json.loads(p.read_text()) for p in sorted(records.glob("*.json"))}
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from meshseq import baselines
+from meshseq.align import per_vertex_error
 from meshseq.cli import main
 from meshseq.data.synthetic import twisting_limb
 from meshseq.io import load_sequence, save_sequence
@@ -83,6 +84,17 @@ def test_completion_passes_exactly_through_keyframes_and_samples_differ(model, t
     assert np.array_equal(again.frames, many.frames)  # a seed reproduces
 
 
+def test_vertex_space_linear_completion_is_straight_lines_through_the_keys(model, trained):
+    from meshseq.synthesize import complete_keyframes
+
+    v = trained[2].vertices.astype(np.float64)
+    out = complete_keyframes(model, v[[4, 10, 13]], [5, 2], method="linear_vertices")
+    assert out.shape == (1, 10) + v.shape[1:]
+    assert np.array_equal(out[0, [0, 6, 9]], v[[4, 10, 13]])
+    assert np.allclose(out[0, 3], 0.5 * (v[4] + v[10]))  # halfway between the first two keys
+    assert np.allclose(np.diff(out[0, :7], 2, axis=0), 0)  # constant velocity within a gap
+
+
 def test_cma_baseline_is_bounded_in_evaluations_and_time(model, trained):
     from meshseq.synthesize import complete_cma
 
@@ -138,7 +150,15 @@ def test_evaluate_command_writes_the_tables_json(trained, tmp_path, capsys):
                 for h, e in per_h.items():
                     assert r[key][m][u][h] == pytest.approx(e * 1e-4 / diag, rel=1e-9)
     assert len(r["feature_change"]["ours"]) == 10 and r["feature_change"]["ground_truth"] > 0
-    assert set(r["completion"]["3"]) >= {"ours", "cma", "linear", "diversity"}
+    assert set(r["completion"]["3"]) >= {"ours", "cma", "linear", "linear_vertices", "diversity"}
+    # the vertex-space baseline: straight lines between the true keys, measured like the others
+    lo, hi = r["range"]
+    starts = np.arange(lo, hi - 3 - 1)
+    starts = starts[np.linspace(0, len(starts) - 1, min(8, len(starts))).astype(int)]
+    v = seq.vertices.astype(np.float64)
+    expect = np.mean([per_vertex_error(baselines.linear_interpolation(v[a], v[a + 4], 3)[1:-1], v[a + 1:a + 4]).mean()
+                      for a in starts]) * 1e4
+    assert r["completion"]["3"]["linear_vertices"] == pytest.approx(expect, rel=1e-9)
     assert any("Tan et al" in n for n in r["notes"])
     assert sorted(p.name for p in plots.iterdir()) == ["error_u1.png", "error_u2.png", "feature_change.png"]
 

@@ -26,7 +26,9 @@ from meshseq.mesh import Topology
 from meshseq.model import BDLSTM, ModelConfig
 
 PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
-COMPLETION_METHODS = ("ours", "cma", "linear")
+#: ``linear``: interpolation of the keys' ACAP features; ``linear_vertices``: straight lines
+#: between the keys' vertex positions.
+COMPLETION_METHODS = ("ours", "cma", "linear", "linear_vertices")
 VAE_NOTE = "vae_latent: latent extrapolation of a mesh VAE on ACAP features, standing in for Tan et al. 2018"
 
 

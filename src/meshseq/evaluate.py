@@ -126,6 +126,10 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
             truth = vertices[a:b + 1]
             anchors = {0: vertices[a], gap + 1: vertices[b]}
             for m in methods:
+                if m == "linear_vertices":  # straight lines in vertex space: no features involved
+                    verts = baselines.linear_interpolation(vertices[a], vertices[b], gap)
+                    errs[m].append(per_vertex_error(verts[1:-1], truth[1:-1]).mean() / UNITS)
+                    continue
                 if m == "ours":
                     f = complete(model, feats[a], feats[b], gap).frames[0]
                 elif m == "cma":

@@ -216,8 +216,8 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
     Args:
         key_vertices: ``(K, V, 3)`` keyframes; gaps: ``K - 1`` numbers of frames to generate
             between consecutive keys.
-        method: ``ours`` (stitched chains), ``cma`` (CMA-ES baseline) or ``linear`` (ACAP
-            interpolation).
+        method: ``ours`` (stitched chains), ``cma`` (CMA-ES baseline), ``linear`` (ACAP
+            interpolation) or ``linear_vertices`` (straight lines between the keys' vertices).
         samples: completions from random initial states (``ours`` only; 1 = the trained states).
     Returns:
         ``(samples, K + sum(gaps), V, 3)`` vertices, exactly the keys at the key frames.
@@ -229,6 +229,9 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
     if samples > 1 and method != "ours":
         raise MeshseqError(f"{samples} samples need the method 'ours'")
     keys = np.asarray(key_vertices, dtype=np.float64)
+    if method == "linear_vertices":
+        parts = [linear_interpolation(keys[i], keys[i + 1], gap)[int(i > 0):] for i, gap in enumerate(gaps)]
+        return np.concatenate(parts)[None]
     key_f = model.features(keys)
     out = []
     for s in range(samples):

@@ -41,8 +41,9 @@ def register(sub) -> None:
                    help="K completions from random initial states (default 1: the trained states)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
     p.add_argument("--method", choices=COMPLETION_METHODS, default="ours",
-                   help="ours (default), cma (CMA-ES over the forward chain's initial state) or linear "
-                   "(interpolation of ACAP features)")
+                   help="ours (default), cma (CMA-ES over the forward chain's initial state), linear "
+                   "(interpolation of ACAP features) or linear_vertices (straight lines between the keys' "
+                   "vertices)")
     p.add_argument("--cma-evals", type=int, default=400, help="CMA-ES: at most this many roll-outs per gap")
     p.add_argument("--cma-seconds", type=float, default=60.0, help="CMA-ES: at most this many seconds per gap")
     _output(p)
@@ -305,7 +306,7 @@ def cmd_evaluate(args) -> int:
                                                        [m for m in methods if m != "zero_velocity"], vae)
     if gaps:
         result["completion"] = evaluate.completion_errors(
-            model, vertices, feats, lo, hi, gaps, ["ours", "cma", "linear"], samples=args.samples,
+            model, vertices, feats, lo, hi, gaps, ["ours", "cma", "linear", "linear_vertices"], samples=args.samples,
             cma_evals=args.cma_evals, cma_seconds=args.cma_seconds)
     _print_tables(result, horizons)
     if args.json_out:
@@ -336,10 +337,10 @@ def _print_tables(result: dict, horizons: list[int]) -> None:
     if "completion" in result:
         table = Table(title="completion: in-between error x 1e-4 (and diversity of samples)")
         table.add_column("gap")
-        for col in ("ours", "cma", "linear", "diversity"):
+        for col in ("ours", "cma", "linear", "linear_vertices", "diversity"):
             table.add_column(col, justify="right")
         for gap, r in result["completion"].items():
-            table.add_row(gap, *[f"{r[c]:.1f}" if c in r else "-" for c in ("ours", "cma", "linear", "diversity")])
+            table.add_row(gap, *[f"{r[c]:.1f}" if c in r else "-" for c in ("ours", "cma", "linear", "linear_vertices", "diversity")])
         console.print(table)
 
 
