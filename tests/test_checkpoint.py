@@ -132,7 +132,7 @@ def test_damaged_checkpoint_is_detected(tmp_path, limb):
     with pytest.warns(meshseq.MeshseqWarning, match="damaged"):
         assert ckpt.latest_checkpoint(tmp_path / "run").name == "00000001"
     with pytest.raises(MeshseqError, match="SHA-256"):
-        ckpt.read_model(newest.parent)
+        ckpt.load(newest.parent)
     with pytest.raises(MeshseqError, match="no such run"):
         meshseq.load(tmp_path / "nothing")
 

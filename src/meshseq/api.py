@@ -22,7 +22,6 @@ import torch
 
 from meshseq import checkpoint as ckpt
 from meshseq.errors import MeshseqError
-from meshseq.mesh import Topology
 from meshseq.model import BDLSTM, ModelConfig
 
 
@@ -188,18 +187,15 @@ class Model:
 
 
 def load(run: str | os.PathLike, device: str = "cpu") -> Model:
-    """Load a trained model from a run folder (its newest checkpoint) or a checkpoint folder.
+    """Load a trained model from a run folder (its newest usable checkpoint) or a checkpoint folder.
 
-    Reads safetensors and JSON only (nothing is unpickled).
+    Reads safetensors and JSON only (nothing is unpickled), checked by
+    ``meshseq.checkpoint_schema``: a damaged or edited checkpoint, or one with non-finite
+    weights, is a one-line MeshseqError naming the file and field.
     """
     from meshseq.train import resolve_device
 
     dev = resolve_device(device)
-    meta, tensors = ckpt.read_model(run)
-    config = ModelConfig.from_dict(meta["model"])
-    reference = tensors["reference.vertices"].numpy().astype(np.float64)
-    faces = tensors["reference.faces"].numpy().astype(np.int64)
-    ckpt.check_topology(meta, faces, reference.shape[0], what=f"{run}: the stored reference mesh")
-    net = BDLSTM(config, Topology.from_faces(faces, reference.shape[0]))
-    net.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
-    return Model(net.to(dev), meta, reference, faces, dev)
+    loaded = ckpt.load(run)
+    return Model(loaded.net.to(dev), loaded.meta, loaded.reference.astype(np.float64),
+                 loaded.faces.astype(np.int64), dev)
