@@ -189,3 +189,178 @@ def test_sigkill_at_any_moment_then_resume(tmp_path):
     with open(run / "metrics.csv", newline="") as fh:
         its = [int(r["iteration"]) for r in csv.DictReader(fh)]
     assert its == list(range(1, target + 1))  # nothing lost, nothing twice
+
+
+# -- the schema of checkpoint files (issue 13.3) -----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def good_checkpoint(tmp_path_factory, limb):
+    """A valid checkpoint folder of a tiny run (copied per test before editing)."""
+    _, data = limb
+    run = tmp_path_factory.mktemp("schema") / "run"
+    train(data, run, TrainConfig(iterations=2, window=6, batch=2, checkpoint_every=0), SMALL, device="cpu",
+          progress=False, log=None)
+    return ckpt.list_checkpoints(run)[-1]
+
+
+def _edit_json(name, edit):
+    def apply(folder):
+        meta = json.loads((folder / name).read_text())
+        out = edit(meta)
+        (folder / name).write_text(json.dumps(meta if out is None else out))
+    return apply
+
+
+def _edit_tensors(name, edit):
+    """Rewrite a safetensors file and record its new SHA-256, so only the contents are wrong."""
+    from safetensors.torch import save_file
+
+    def apply(folder):
+        tensors = load_file(str(folder / name))
+        edit(tensors)
+        save_file(tensors, str(folder / name))
+        _rehash(folder, name)
+    return apply
+
+
+def _raw_tensors(name, data: bytes):
+    def apply(folder):
+        (folder / name).write_bytes(data)
+        _rehash(folder, name)
+    return apply
+
+
+def _rehash(folder, name):
+    meta_name = name.replace(".safetensors", ".json")
+    meta = json.loads((folder / meta_name).read_text())
+    meta["sha256"] = ckpt._sha256(folder / name)
+    (folder / meta_name).write_text(json.dumps(meta))
+
+
+def _set(path, value):
+    def edit(meta):
+        *head, last = path
+        d = meta
+        for k in head:
+            d = d[k]
+        d[last] = value
+    return edit
+
+
+def _delete(path):
+    def edit(meta):
+        *head, last = path
+        d = meta
+        for k in head:
+            d = d[k]
+        del d[last]
+    return edit
+
+
+M, S, MT, ST = "model.json", "state.json", "model.safetensors", "state.safetensors"
+SCHEMA_CASES = {
+    # model.json
+    "latent is a string": (_edit_json(M, _set(["model", "latent"], "16")), M, "model.latent: expected an integer"),
+    "latent missing": (_edit_json(M, _delete(["model", "latent"])), M, "model.latent: missing"),
+    "model is a list": (_edit_json(M, _set(["model"], [16, 2])), M, "model: expected an object"),
+    "whole file a list": (_edit_json(M, lambda m: [m]), M, "not a meshseq-bdlstm-checkpoint file"),
+    "scaling min = max": (_edit_json(M, lambda m: m["scaling"].update(maximum=m["scaling"]["minimum"])), M,
+                          "scaling: channel 0: maximum"),
+    "scaling with 8 channels": (_edit_json(M, lambda m: m["scaling"].update(minimum=m["scaling"]["minimum"][:8])), M, "scaling: expected 9"),
+    "scaling mode": (_edit_json(M, _set(["scaling", "mode"], "log")), M, "scaling.mode"),
+    "negative lr in train": (_edit_json(M, _set(["train", "lr"], -1e-3)), M, "train: --lr -0.001"),
+    "window a float": (_edit_json(M, _set(["train", "window"], 6.5)), M, "train.window: expected an integer"),
+    "topology missing": (_edit_json(M, _delete(["topology"])), M, "topology: missing"),
+    "vertex count differs": (_edit_json(M, _set(["model", "n_vertices"], 7)), M, "topology"),
+    "unknown variant": (_edit_json(M, _set(["model", "variant"], "bi")), M, "model: --variant 'bi'"),
+    "held-out block outside": (_edit_json(M, _set(["datasets", 0, "split", "heldout"], [24, 99])), M,
+                               "datasets[0].split.heldout"),
+    "no data sets": (_edit_json(M, _set(["datasets"], [])), M, "datasets: empty"),
+    "iteration a string": (_edit_json(M, _set(["iteration"], "two")), M, "iteration: expected an integer"),
+    "iteration not the folder's": (_edit_json(M, _set(["iteration"], 7)), M, "iteration: 7 does not match"),
+    "newer format": (_edit_json(M, _set(["format_version"], 99)), M, "format_version: 99 is newer"),
+    "not JSON": (lambda f: (f / M).write_text('{"format": '), M, "not valid JSON"),
+    "NaN in JSON": (_edit_json(M, _set(["model", "init_state"], float("nan"))), M, "model.init_state"),
+    # state.json
+    "negative lr in state": (_edit_json(S, _set(["optimizer", "param_groups", 0, "lr"], -0.5)), S,
+                             "optimizer.param_groups[0].lr: -0.5"),
+    "one beta": (_edit_json(S, _set(["optimizer", "param_groups", 0, "betas"], [0.9])), S, "betas"),
+    "garbage numpy state": (_edit_json(S, _set(["numpy_rng"], {"bit_generator": "PCG64", "state": "x"})), S,
+                            "numpy_rng: not a numpy PCG64 state"),
+    "numpy state a list": (_edit_json(S, _set(["numpy_rng"], [1, 2])), S, "numpy_rng: expected an object"),
+    "garbage python state": (_edit_json(S, _set(["python_random"], [3, [1, 2], None])), S,
+                             "python_random: not a Python random state"),
+    "optimizer a list": (_edit_json(S, _set(["optimizer"], [])), S, "optimizer: expected an object"),
+    "numpy state missing": (_edit_json(S, _delete(["numpy_rng"])), S, "numpy_rng: missing"),
+    "negative step": (_edit_json(S, lambda m: m["optimizer"]["scalars"]["fc.weight"].update(step=-1)), S,
+                      "optimizer.scalars.fc.weight"),
+    "odd optimizer flag": (_edit_json(S, _set(["optimizer", "param_groups", 0, "fused"], "yes")), S,
+                           "param_groups[0].fused"),
+    # tensors with the right SHA-256 but wrong contents
+    "weight of another shape": (_edit_tensors(MT, lambda t: t.update({"model.fc.weight": t["model.fc.weight"][:3]})),
+                                MT, "model.fc.weight: torch.float32 (3, "),
+    "weight in float64": (_edit_tensors(MT, lambda t: t.update({"model.fc.bias": t["model.fc.bias"].double()})),
+                          MT, "model.fc.bias: torch.float64"),
+    "weight missing": (_edit_tensors(MT, lambda t: t.pop("model.fc_mu.bias")), MT, "lacks tensor model.fc_mu.bias"),
+    "extra tensor": (_edit_tensors(MT, lambda t: t.update({"model.extra": torch.zeros(2)})), MT, "model.extra"),
+    "faces out of range": (_edit_tensors(MT, lambda t: t["reference.faces"].__setitem__((0, 0), 10**6)), MT,
+                           "reference.faces: vertex numbers outside"),
+    "faces reordered": (_edit_tensors(MT, lambda t: t.update({"reference.faces": t["reference.faces"].flip(0)})),
+                        MT, "reference.faces: connectivity hash"),
+    "reference in float32": (_edit_tensors(MT, lambda t: t.update(
+        {"reference.vertices": t["reference.vertices"].float()})), MT, "reference.vertices: torch.float32"),
+    "NaN weight": (_edit_tensors(MT, lambda t: t["model.fc.weight"].__setitem__((0, 0), float("nan"))), MT,
+                   "model.fc.weight: non-finite values"),
+    "infinite reference": (_edit_tensors(MT, lambda t: t["reference.vertices"].__setitem__((0, 0), float("inf"))),
+                           MT, "reference.vertices: non-finite"),
+    "not safetensors": (_raw_tensors(MT, b"\x08\x00\x00\x00\x00\x00\x00\x00{garbage"), MT, "not a safetensors file"),
+    "torch RNG garbage": (_edit_tensors(ST, lambda t: t.update({"rng.torch": torch.zeros(7, dtype=torch.uint8)})),
+                          ST, "rng.torch: not a torch generator state"),
+    "RNG missing": (_edit_tensors(ST, lambda t: t.pop("rng.torch")), ST, "lacks tensor rng.torch"),
+    "moment of another shape": (_edit_tensors(ST, lambda t: t.update(
+        {"optim.fc.weight.exp_avg": torch.zeros(2, 2)})), ST, "optim.fc.weight.exp_avg: torch.float32 (2, 2)"),
+    "moment of no parameter": (_edit_tensors(ST, lambda t: t.update({"optim.nope.exp_avg": torch.zeros(2)})), ST,
+                               "optim.nope.exp_avg: moments of an unknown parameter"),
+    "NaN moment": (_edit_tensors(ST, lambda t: t["optim.fc.bias.exp_avg_sq"].__setitem__(0, float("nan"))), ST,
+                   "optim.fc.bias.exp_avg_sq: non-finite"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(SCHEMA_CASES))
+def test_edited_checkpoint_is_one_line_naming_file_and_field(case, good_checkpoint, tmp_path):
+    import shutil
+
+    edit, file_name, fragment = SCHEMA_CASES[case]
+    folder = tmp_path / good_checkpoint.name
+    shutil.copytree(good_checkpoint, folder)
+    ckpt.load_folder(folder, with_state=True)  # the copy is fine before the edit
+    edit(folder)
+    with pytest.raises(MeshseqError) as info:
+        ckpt.load_folder(folder, with_state=True)
+    message = str(info.value)
+    assert "\n" not in message and str(folder / file_name) in message and fragment in message, message
+    assert not ckpt.is_valid(folder)
+
+
+def test_edited_checkpoint_through_the_commands(good_checkpoint, limb, tmp_path, capsys):
+    """meshseq predict and train --resume: exit 2 and one line, no traceback, nothing written."""
+    import shutil
+
+    seq, _ = limb
+    save_sequence(seq, tmp_path / "limb.npz")
+    run = tmp_path / "run"
+    folder = run / "checkpoints" / good_checkpoint.name
+    shutil.copytree(good_checkpoint, folder)
+    _edit_json(M, _set(["model", "latent"], "16"))(folder)
+    out = tmp_path / "out.npz"
+    assert main(["predict", str(run), str(tmp_path / "limb.npz"), "-o", str(out), "--frames", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("meshseq: error:") and "model.latent: expected an integer" in err
+    assert not out.exists()
+    assert main(["train", str(tmp_path / "limb.npz"), "--out", str(run), "--resume", "--iterations", "3",
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("meshseq: error:")]
+    assert len(lines) == 1 and "--resume" in lines[0] and "every checkpoint is damaged" in lines[0]
+    assert "Traceback" not in err

@@ -31,6 +31,15 @@ def _to_torch(x, device) -> tuple[torch.Tensor, bool]:
     return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device), True
 
 
+def _check_finite(frames: np.ndarray, what: str) -> None:
+    """MeshseqError naming the first frame of ``frames`` ``(T, ...)`` with a NaN or infinity."""
+    ok = np.isfinite(frames.reshape(len(frames), -1)).all(axis=1) if frames.ndim > 1 else np.isfinite(frames)
+    if not ok.all():
+        t = int(np.flatnonzero(~ok)[0])
+        raise MeshseqError(f"the model's output is not finite ({what} of frame {t} of {len(frames)}): "
+                           "it diverged on this input")
+
+
 def _back(t: torch.Tensor, as_numpy: bool):
     return t.detach().cpu().numpy() if as_numpy else t
 
@@ -88,13 +97,20 @@ class Model:
         return self.scaling.apply(f).astype(np.float32)
 
     def vertices(self, x) -> np.ndarray:
-        """Scaled features ``(T, V, 9)`` -> vertices ``(T, V, 3)`` (centroid at the origin)."""
+        """Scaled features ``(T, V, 9)`` -> vertices ``(T, V, 3)`` (centroid at the origin).
+
+        MeshseqError if a frame's features or vertices are not finite (a diverged roll-out), so
+        nothing downstream writes or measures NaN frames.
+        """
         from meshseq import acap
 
         if self._reconstructor is None:
             self._reconstructor = acap.Reconstructor(self.reference, self.faces)
         x = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-        return self._reconstructor.solve(self.scaling.invert(x.astype(np.float64)))
+        _check_finite(x, "features")
+        v = self._reconstructor.solve(self.scaling.invert(x.astype(np.float64)))
+        _check_finite(v, "vertices")
+        return v
 
     # -- the network --------------------------------------------------------------------------
 

@@ -236,14 +236,17 @@ def load_latest(run_dir: str | os.PathLike, with_state: bool = False) -> Loaded:
     folders = list_checkpoints(run_dir)
     if not folders:
         raise MeshseqError(f"{run_dir}: no checkpoint in {checkpoint_root(run_dir)}")
-    newest_problem = None
+    problems = []
     for folder in reversed(folders):
         try:
-            return load_folder(folder, with_state)
+            loaded = load_folder(folder, with_state)
         except MeshseqError as err:
-            newest_problem = newest_problem or err
-            warnings.warn(f"{folder}: damaged checkpoint skipped ({err})", MeshseqWarning)
-    raise MeshseqError(f"{run_dir}: every checkpoint is damaged (the newest: {newest_problem})")
+            problems.append(err)
+            continue
+        for err in problems:
+            warnings.warn(f"damaged checkpoint skipped: {err}", MeshseqWarning)
+        return loaded
+    raise MeshseqError(f"{run_dir}: every checkpoint is damaged (the newest: {problems[0]})")
 
 
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
