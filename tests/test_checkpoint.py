@@ -364,3 +364,86 @@ def test_edited_checkpoint_through_the_commands(good_checkpoint, limb, tmp_path,
     lines = [line for line in err.splitlines() if line.startswith("meshseq: error:")]
     assert len(lines) == 1 and "--resume" in lines[0] and "every checkpoint is damaged" in lines[0]
     assert "Traceback" not in err
+
+
+# -- --resume never starts over; --keep; --force (issue 13.2, 13.3) ----------------------------
+
+
+def _cli_args(tmp_path, run, *extra):
+    return ["train", str(tmp_path / "limb.npz"), "--out", str(run), "--window", "6", "--batch", "2", "--latent",
+            "16", "--lstm-layers", "1", "--no-progress", "--log-every", "1", *extra]
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("meshseq: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_resume_never_starts_over(tmp_path, limb, capsys):
+    seq, _ = limb
+    save_sequence(seq, tmp_path / "limb.npz")
+    # nothing to resume: an error, and no folder is created
+    missing = tmp_path / "missing"
+    assert main(_cli_args(tmp_path, missing, "--iterations", "2", "--resume")) == 2
+    assert "leave out --resume" in _one_error_line(capsys) and not missing.exists()
+    (tmp_path / "empty").mkdir()
+    assert main(_cli_args(tmp_path, tmp_path / "empty", "--iterations", "2", "--resume")) == 2
+    assert "no checkpoint" in _one_error_line(capsys) and not any((tmp_path / "empty").iterdir())
+    # a run with stored options other than the defaults
+    run = tmp_path / "run"
+    assert main(_cli_args(tmp_path, run, "--iterations", "4", "--checkpoint-every", "2", "--lr", "0.002",
+                          "--seed", "5")) == 0
+    metrics = (run / "metrics.csv").read_text()
+    # resuming with other options on the command line: the stored ones are used
+    assert main(_cli_args(tmp_path, run, "--iterations", "6", "--checkpoint-every", "2", "--resume", "--lr",
+                          "0.5", "--window", "5")) == 0
+    meta = json.loads((ckpt.latest_checkpoint(run) / "model.json").read_text())
+    assert meta["iteration"] == 6 and meta["train"]["lr"] == 0.002 and meta["train"]["window"] == 6
+    assert meta["train"]["seed"] == 5 and meta["train"]["iterations"] == 6
+    rows = (run / "metrics.csv").read_text()
+    assert rows.startswith(metrics) and len(rows.splitlines()) == 7
+    # every checkpoint damaged (state.json garbage): an error; options and metrics untouched
+    for folder in ckpt.list_checkpoints(run):
+        (folder / "state.json").write_text("[]")
+    assert main(_cli_args(tmp_path, run, "--iterations", "8", "--resume")) == 2
+    line = _one_error_line(capsys)
+    assert "every checkpoint is damaged" in line and "state.json" in line and "--force" in line
+    assert (run / "metrics.csv").read_text() == rows
+    # --resume with --force is a contradiction
+    assert main(_cli_args(tmp_path, run, "--iterations", "8", "--resume", "--force")) == 2
+    assert "choose one" in _one_error_line(capsys)
+
+
+def test_damaged_checkpoint_does_not_count_toward_keep(tmp_path, limb):
+    _, data = limb
+    cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=3, keep=2)
+    run = tmp_path / "run"
+    train(data, run, TrainConfig(iterations=9, **cfg), SMALL, device="cpu", progress=False, log=None)
+    assert [f.name for f in ckpt.list_checkpoints(run)] == ["00000006", "00000009"]
+    (run / "checkpoints" / "00000009" / "state.json").write_text("{}")
+    with pytest.warns(meshseq.MeshseqWarning, match="00000009"):
+        train(data, run, TrainConfig(iterations=8, **cfg), SMALL, device="cpu", resume=True, progress=False,
+              log=None)
+    names = [f.name for f in ckpt.list_checkpoints(run)]
+    assert names == ["00000006", "00000008", "00000009"]  # two good ones kept; the damaged one left alone
+    assert ckpt.is_valid(run / "checkpoints" / "00000006") and not ckpt.is_valid(run / "checkpoints" / "00000009")
+
+
+def test_force_removes_only_what_meshseq_wrote(tmp_path, limb, capsys):
+    seq, _ = limb
+    save_sequence(seq, tmp_path / "limb.npz")
+    run = tmp_path / "run"
+    assert main(_cli_args(tmp_path, run, "--iterations", "4", "--checkpoint-every", "2")) == 0
+    mine = [run / "notes.txt", run / "checkpoints" / "README.txt", run / "tensorboard" / "my-plot.png",
+            run / "checkpoints" / "old-runs" / "a.txt"]
+    for p in mine:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text("the user's")
+    (run / "tensorboard" / "events.out.tfevents.1.host").write_text("meshseq's")
+    assert main(_cli_args(tmp_path, run, "--iterations", "1", "--force")) == 0
+    assert all(p.read_text() == "the user's" for p in mine)
+    assert [f.name for f in ckpt.list_checkpoints(run)] == ["00000001"]
+    assert not (run / "tensorboard" / "events.out.tfevents.1.host").exists()
+    assert len((run / "metrics.csv").read_text().splitlines()) == 2
