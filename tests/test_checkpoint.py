@@ -447,3 +447,30 @@ def test_force_removes_only_what_meshseq_wrote(tmp_path, limb, capsys):
     assert [f.name for f in ckpt.list_checkpoints(run)] == ["00000001"]
     assert not (run / "tensorboard" / "events.out.tfevents.1.host").exists()
     assert len((run / "metrics.csv").read_text().splitlines()) == 2
+
+
+def test_damaged_vae_baseline_is_one_line(tmp_path, limb):
+    from safetensors.torch import save_file
+
+    from meshseq import baselines
+    from meshseq.mesh import Topology
+
+    seq, data = limb
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    vae = baselines.train_vae(np.asarray(data.features[0][:8], dtype=np.float32) * 0.1, topo, latent=8,
+                              iterations=2, device="cpu")
+    folder = tmp_path / "vae"
+    baselines.save_vae(vae, folder, {"data": "x"})
+    baselines.load_vae(folder, topo)
+    tensors = load_file(str(folder / "vae.safetensors"))
+    name = next(k for k, v in tensors.items() if v.is_floating_point() and v.dim() == 2)
+    tensors[name][0, 0] = float("nan")
+    save_file(tensors, str(folder / "vae.safetensors"))
+    with pytest.raises(MeshseqError, match=f"vae.safetensors: {name}: non-finite"):
+        baselines.load_vae(folder, topo)
+    (folder / "vae.json").write_text('{"config": {"n_vertices": "50"}}')
+    with pytest.raises(MeshseqError, match=r"vae.json: config.n_vertices: expected an integer"):
+        baselines.load_vae(folder, topo)
+    (folder / "vae.safetensors").write_bytes(b"garbage")
+    with pytest.raises(MeshseqError, match="damaged VAE baseline"):
+        baselines.load_vae(folder, topo)

@@ -252,17 +252,22 @@ def check_state_meta(meta, file: Path, iteration: int | None = None) -> None:
 # tensors
 
 
-def _check_like(tensors: dict, expected: dict, file, what: str) -> None:
-    """CheckpointError unless ``tensors`` has exactly ``expected``'s names, shapes and dtypes."""
+def check_like(tensors: dict, expected: dict, file, exact: bool = False) -> None:
+    """CheckpointError unless ``tensors`` has ``expected``'s names, shapes and dtypes, finite
+    values (floating point) and, if ``exact``, no other tensors."""
     missing = sorted(set(expected) - set(tensors))
     if missing:
-        raise CheckpointError(file, "", f"{what} lacks tensor {missing[0]}" + (f" (and {len(missing) - 1} more)"
-                                                                     if len(missing) > 1 else ""))
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise CheckpointError(file, "", f"the file lacks tensor {missing[0]}{more}")
     for name, want in expected.items():
         got = tensors[name]
         if got.dtype != want.dtype or tuple(got.shape) != tuple(want.shape):
-            raise CheckpointError(file, name, f"{got.dtype} {tuple(got.shape)}, expected {want.dtype} {tuple(want.shape)} "
-                      f"(the model its JSON describes)")
+            raise CheckpointError(file, name, f"{got.dtype} {tuple(got.shape)}, expected {want.dtype} "
+                                  f"{tuple(want.shape)} (the model its JSON describes)")
+    extra = sorted(set(tensors) - set(expected))
+    if exact and extra:
+        raise CheckpointError(file, extra[0], "unexpected tensor (not part of the model its JSON describes)")
+    _check_finite({k: tensors[k] for k in expected}, file)
 
 
 def _check_finite(tensors: dict, file) -> None:
@@ -282,14 +287,13 @@ def check_reference(tensors: dict, meta: dict, file: Path) -> None:
     V, F = topo["n_vertices"], topo["n_faces"]
     want = {"reference.vertices": torch.empty((V, 3), dtype=torch.float64),
             "reference.faces": torch.empty((F, 3), dtype=torch.int64)}
-    _check_like(tensors, want, file, "the file")
+    check_like(tensors, want, file)
     faces = tensors["reference.faces"]
     if int(faces.min()) < 0 or int(faces.max()) >= V:
         raise CheckpointError(file, "reference.faces", f"vertex numbers outside 0..{V - 1}")
     if topology_hash(faces.numpy(), V) != topo["hash"]:
         raise CheckpointError(file, "reference.faces", f"connectivity hash differs from topology.hash {topo['hash']} "
                               "in model.json")
-    _check_finite({"reference.vertices": tensors["reference.vertices"]}, file)
 
 
 def check_model_tensors(tensors: dict, expected: dict, file: Path) -> None:
@@ -297,11 +301,8 @@ def check_model_tensors(tensors: dict, expected: dict, file: Path) -> None:
     ``expected`` (the state dict of the model its JSON describes: same shapes and dtypes), finite,
     besides the reference mesh (:func:`check_reference`), and nothing else."""
     want = {f"model.{k}": v for k, v in expected.items()}
-    _check_like(tensors, want, file, "the file")
-    extra = sorted(set(tensors) - set(want) - {"reference.vertices", "reference.faces"})
-    if extra:
-        raise CheckpointError(file, extra[0], "unexpected tensor (not part of the model its JSON describes)")
-    _check_finite({k: tensors[k] for k in want}, file)
+    want.update({k: tensors[k] for k in ("reference.vertices", "reference.faces")})  # checked before
+    check_like(tensors, want, file, exact=True)
 
 
 def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> None:
