@@ -398,10 +398,16 @@ def test_resume_never_starts_over(tmp_path, limb, capsys):
     metrics = (run / "metrics.csv").read_text()
     # resuming with other options on the command line: the stored ones are used
     assert main(_cli_args(tmp_path, run, "--iterations", "6", "--checkpoint-every", "2", "--resume", "--lr",
-                          "0.5", "--window", "5")) == 0
+                          "0.5", "--window", "5", "--consistency", "spatial")) == 0
     meta = json.loads((ckpt.latest_checkpoint(run) / "model.json").read_text())
     assert meta["iteration"] == 6 and meta["train"]["lr"] == 0.002 and meta["train"]["window"] == 6
     assert meta["train"]["seed"] == 5 and meta["train"]["iterations"] == 6
+    assert meta["train"]["consistency"] == meta["features"]["consistency"] == "temporal"
+    from meshseq.train import load_training_data
+
+    spatial = load_training_data([str(tmp_path / "limb.npz")], consistency="spatial")
+    with pytest.raises(MeshseqError, match="trained on temporal features; the data were extracted with spatial"):
+        train(spatial, run, TrainConfig(iterations=8), device="cpu", resume=True, progress=False, log=None)
     rows = (run / "metrics.csv").read_text()
     assert rows.startswith(metrics) and len(rows.splitlines()) == 7
     # every checkpoint damaged (state.json garbage): an error; options and metrics untouched

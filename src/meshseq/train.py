@@ -221,6 +221,7 @@ class TrainingData:
     features: list[np.ndarray]
     faces: np.ndarray
     reference: np.ndarray
+    consistency: str = "temporal"  # the rotation consistency the features were extracted with
 
     @property
     def n_vertices(self) -> int:
@@ -250,7 +251,7 @@ def load_training_data(specs: list[str], consistency: str = "temporal") -> Train
             )
     reference = first.vertices[0].copy()
     feats = [acap.extract(s.vertices, s.faces, reference=reference, consistency=consistency) for s in seqs]
-    return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference)
+    return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference, consistency)
 
 
 def step_spread(scaled: list[np.ndarray], splits: list[Split], stride: int = 1) -> np.ndarray:
@@ -411,7 +412,7 @@ def remove_run_outputs(run_dir: Path) -> None:
             folder.rmdir()
 
 
-def _resume_point(run_dir: Path) -> "ckpt.Loaded":
+def resume_point(run_dir: Path) -> "ckpt.Loaded":
     """The checkpoint ``--resume`` continues from; MeshseqError (never a fresh start) if none is usable."""
     try:
         return ckpt.load_latest(run_dir, with_state=True)
@@ -488,7 +489,7 @@ def train(
     log = log if (is_main and log) else (lambda msg: None)
     if resume and force:
         raise MeshseqError("--resume and --force: choose one (--resume continues RUN, --force starts it over)")
-    found = _resume_point(run_dir) if resume else None
+    found = resume_point(run_dir) if resume else None
     if is_main:
         _prepare_run_dir(run_dir, resume, force)
     if dist_info.active:
@@ -522,6 +523,10 @@ def train(
         scaling = Scaling.fit(train_feats, mode=config.scaling)
         model_config.input_norm = bool(config.input_norm)
 
+    if data.consistency != config.consistency:
+        stored = f"{found.folder} was trained on" if found is not None else "--consistency asks for"
+        raise MeshseqError(f"{stored} {config.consistency} features; the data were extracted with "
+                           f"{data.consistency} rotation consistency")
     scaled = [scaling.apply(f) for f in data.features]  # (T_d, V, 9) float64 each
     if found is None and config.step_scale == "data":
         model_config.step_scale = [float(v) for v in step_spread(scaled, splits, config.stride)]

@@ -117,7 +117,12 @@ def _train(args) -> int:
         torch.set_num_threads(args.threads)
     model_options = {"variant": args.variant, "latent": args.latent, "lstm_layers": args.lstm_layers,
                      "conv_layers": args.conv_layers, "conv_impl": args.conv}
-    data = load_training_data(args.data, consistency=args.consistency)
+    consistency = args.consistency
+    if args.resume and not args.force:  # features as the run was trained on (its stored options)
+        from meshseq.train import resume_point
+
+        consistency = resume_point(out).meta["train"]["consistency"]
+    data = load_training_data(args.data, consistency=consistency)
     result = train(data, out, config, model_options, device=args.device, resume=args.resume, force=args.force,
                    progress=not args.no_progress)
     if result.get("checkpoint") and (not _dist_rank()):
