@@ -8,9 +8,16 @@ A run folder ``RUN`` holds ``RUN/checkpoints/ITERATION/`` (zero-padded) folders,
 * ``model.json``: format, iteration, model config, training config, feature scaling, mesh
   topology hash, data set names and splits, and the SHA-256 of ``model.safetensors``;
 * ``state.safetensors``: Adam moments ``optim.<param name>.<key>``, the torch CPU generator state
-  ``rng.torch`` (uint8) and, on CUDA, ``rng.cuda``;
-* ``state.json``: Adam step counts and hyper-parameters, the numpy bit-generator state, Python's
-  ``random`` state and the SHA-256 of ``state.safetensors``.
+  ``rng.torch`` (uint8) and, on CUDA, ``rng.cuda``; under DistributedDataParallel every other
+  process's as ``rng.torch.rank<R>`` / ``rng.cuda.rank<R>`` (each rank draws its own noise);
+* ``state.json``: Adam step counts and hyper-parameters, the numpy bit-generator state (common to
+  all ranks), Python's ``random`` state, the number of processes and the SHA-256 of
+  ``state.safetensors``.
+
+Reading goes through :func:`load_folder` only, which checks everything against
+``meshseq.checkpoint_schema`` (JSON fields and types, tensor names, shapes, dtypes, finite
+values): a damaged or edited checkpoint is one MeshseqError naming the file and the field. A run's
+newest usable checkpoint is :func:`load_latest`; damaged ones never count toward ``keep``.
 
 A checkpoint folder is written under a temporary name and renamed into place
 (``meshseq.io.atomic_output``) after its files are flushed to disk, so a run killed at any moment

@@ -153,7 +153,8 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
         raise CheckpointError(file, "", f"not a {FORMAT} file")
     check(meta, model_meta_schema(), file)
     if meta["format_version"] > FORMAT_VERSION:
-        raise CheckpointError(file, "format_version", f"{meta['format_version']} is newer than this meshseq ({FORMAT_VERSION})")
+        raise CheckpointError(file, "format_version",
+                              f"{meta['format_version']} is newer than this meshseq ({FORMAT_VERSION})")
     _check_iteration(meta, file, iteration)
     for key, cls in (("model", ModelConfig), ("train", TrainConfig)):
         try:
@@ -164,8 +165,8 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
     if model["channels"] != 9:
         raise CheckpointError(file, "model.channels", f"{model['channels']}: ACAP features have 9 channels")
     if topo["n_vertices"] != model["n_vertices"] or topo["n_vertices"] < 1 or topo["n_faces"] < 1:
-        raise CheckpointError(file, "topology", f"{topo['n_vertices']} vertices, {topo['n_faces']} faces, but the model has "
-                  f"{model['n_vertices']} vertices")
+        raise CheckpointError(file, "topology", f"{topo['n_vertices']} vertices, {topo['n_faces']} faces, but the "
+                              f"model has {model['n_vertices']} vertices")
     sc = meta["scaling"]
     if sc["mode"] not in SCALING_MODES:
         raise CheckpointError(file, "scaling.mode", f"{sc['mode']!r}: expected one of {', '.join(SCALING_MODES)}")
@@ -227,11 +228,12 @@ def check_state_meta(meta, file: Path, iteration: int | None = None) -> None:
     if len(g["betas"]) != 2 or not all(0 <= b < 1 for b in g["betas"]):
         raise CheckpointError(file, "optimizer.param_groups[0].betas", f"{g['betas']}: expected two numbers in [0, 1)")
     if not g["eps"] > 0 or g["weight_decay"] < 0:
-        raise CheckpointError(file, "optimizer.param_groups[0]", f"eps {g['eps']} must be > 0, weight_decay "
-                  f"{g['weight_decay']} >= 0")
+        raise CheckpointError(file, "optimizer.param_groups[0]",
+                              f"eps {g['eps']} must be > 0, weight_decay {g['weight_decay']} >= 0")
     for key, val in g.items():
         if key not in need and not isinstance(val, (bool, type(None))):
-            raise CheckpointError(file, f"optimizer.param_groups[0].{key}", f"expected true, false or null, got {_show(val)}")
+            raise CheckpointError(file, f"optimizer.param_groups[0].{key}",
+                                  f"expected true, false or null, got {_show(val)}")
     for name, scalars in meta["optimizer"]["scalars"].items():
         if any(v < 0 for v in scalars.values()):
             raise CheckpointError(file, f"optimizer.scalars.{name}", "negative step count")
@@ -273,8 +275,8 @@ def check_like(tensors: dict, expected: dict, file, exact: bool = False) -> None
 def _check_finite(tensors: dict, file) -> None:
     for name, t in tensors.items():
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
-            raise CheckpointError(file, name, "non-finite values (NaN or infinity): the run diverged; use an earlier "
-                      "checkpoint")
+            raise CheckpointError(file, name, "non-finite values (NaN or infinity): the run diverged; use an "
+                                  "earlier checkpoint")
 
 
 def check_reference(tensors: dict, meta: dict, file: Path) -> None:
@@ -306,8 +308,8 @@ def check_model_tensors(tensors: dict, expected: dict, file: Path) -> None:
 
 
 def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> None:
-    """CheckpointError unless state.safetensors holds Adam moments ``optim.<param>.<key>`` shaped like the
-    parameters ``params`` (name -> tensor) for exactly the parameters with step counts in
+    """CheckpointError unless state.safetensors holds Adam moments ``optim.<param>.<key>`` shaped
+    like the parameters ``params`` (name -> tensor) for exactly the parameters with step counts in
     ``meta`` (state.json), finite, and valid torch generator states ``rng.torch[.rankR]``."""
     scalars = meta["optimizer"]["scalars"]
     group = meta["optimizer"]["param_groups"][0]
@@ -317,13 +319,13 @@ def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> 
     moments: dict = {}
     for key, t in tensors.items():
         if key.startswith("optim."):
-            name, sub = key[len("optim."):].rsplit(".", 1) if "." in key[len("optim."):] else (key, "")
+            name, _, sub = key[len("optim."):].rpartition(".")
             if name not in params:
                 raise CheckpointError(file, key, "moments of an unknown parameter")
             p = params[name]
             if t.dtype != p.dtype or t.shape != p.shape:
-                raise CheckpointError(file, key, f"{t.dtype} {tuple(t.shape)}, expected {p.dtype} {tuple(p.shape)} "
-                          "(its parameter)")
+                raise CheckpointError(file, key, f"{t.dtype} {tuple(t.shape)}, expected {p.dtype} "
+                                      f"{tuple(p.shape)} (its parameter)")
             moments.setdefault(name, set()).add(sub)
         elif key == "rng.torch" or key.startswith("rng.torch.rank"):
             try:

@@ -25,7 +25,13 @@ Distributed: started by ``torchrun`` (env ``RANK``/``WORLD_SIZE``/``MASTER_ADDR`
 process joins a process group (NCCL on CUDA, Gloo on CPU) and trains a
 ``DistributedDataParallel`` copy; all ranks draw the same global batch of ``batch`` windows and
 each takes its ``batch / world_size`` share, so a step sees the same windows as a single process
-would. Rank 0 writes metrics and checkpoints.
+would. Rank 0 writes metrics and checkpoints, which hold every rank's generator state, so a
+resume repeats a multi-process run bit for bit (on CPU).
+
+Divergence: every iteration checks the weighted loss terms, their total and the gradient norm
+for NaN/infinity before the update (one host synchronisation; under DDP one all-reduce of the
+flag); the first non-finite value stops training with a MeshseqError naming the iteration and the
+term, and the last good checkpoint stays the newest.
 """
 
 from __future__ import annotations
