@@ -287,3 +287,107 @@ def test_cuda_trains_and_resumes(tmp_path, precision):
         gpu = WindowLoss(model, TrainConfig())(w.cuda(), sample=False)[0].item()
         cpu = WindowLoss(model.cpu(), TrainConfig())(w, sample=False)[0].item()
     assert abs(gpu - cpu) <= 1e-4 * abs(cpu)
+
+
+# -- divergence (issue 13.1) -------------------------------------------------------------------
+
+
+def test_divergence_stops_with_one_line_and_keeps_the_last_good_checkpoint(tmp_path, capsys):
+    from meshseq import checkpoint as ckpt
+
+    seq, _ = limb_data(frames=30)
+    save_sequence(seq, tmp_path / "limb.npz")
+    run = tmp_path / "run"
+    argv = ["train", str(tmp_path / "limb.npz"), "--out", str(run), "--iterations", "20", "--window", "6",
+            "--batch", "2", "--latent", "16", "--lstm-layers", "1", "--checkpoint-every", "1", "--log-every", "1",
+            "--keep", "3", "--no-progress", "--lr", "1e6"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("meshseq: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    message = lines[0]
+    assert "training diverged at iteration" in message and "--lr" in message
+    bad_it = int(message.split("iteration ")[1].split(":")[0])
+    assert any(term in message for term in ("the loss term", "the total loss", "the gradient norm"))
+    folders = ckpt.list_checkpoints(run)
+    assert folders and int(folders[-1].name) == bad_it - 1 and str(folders[-1]) in message
+    for folder in folders:  # every checkpoint written is finite and loads
+        assert ckpt.is_valid(folder)
+    rows = read_metrics(run)
+    assert [int(r["iteration"]) for r in rows] == list(range(1, bad_it))
+    assert all(math.isfinite(float(r["loss"])) for r in rows)
+    # the last good checkpoint is a working model
+    assert meshseq.load(run).iteration == bad_it - 1
+
+
+def test_non_finite_gradient_is_caught_before_the_update(tmp_path, monkeypatch):
+    from meshseq import train as train_module
+
+    _, data = limb_data(frames=24)
+    real = train_module.grad_norm
+    calls = []
+
+    def poisoned(params):
+        calls.append(1)
+        return real(params) * (float("inf") if len(calls) == 3 else 1.0)
+
+    monkeypatch.setattr(train_module, "grad_norm", poisoned)
+    cfg = TrainConfig(iterations=5, window=6, batch=2, eval_every=0, checkpoint_every=1, log_every=1)
+    with pytest.raises(MeshseqError, match=r"diverged at iteration 3: the gradient norm is inf") as info:
+        train(data, tmp_path / "run", cfg, SMALL, device="cpu", progress=False, log=None)
+    assert "00000002" in str(info.value)
+    before = meshseq.load(tmp_path / "run").net.state_dict()
+    assert meshseq.load(tmp_path / "run").iteration == 2 and all(torch.isfinite(v).all() for v in before.values())
+
+
+def test_loaders_refuse_non_finite_weights_and_commands_write_no_non_finite_output(tmp_path, capsys, monkeypatch):
+    import json
+
+    from safetensors.torch import load_file, save_file
+
+    from meshseq import checkpoint as ckpt
+
+    seq, data = limb_data(frames=24)
+    save_sequence(seq, tmp_path / "limb.npz")
+    run = tmp_path / "run"
+    train(data, run, TrainConfig(iterations=2, window=6, batch=2, checkpoint_every=0), SMALL, device="cpu",
+          progress=False, log=None)
+    folder = ckpt.list_checkpoints(run)[-1]
+    out = tmp_path / "out.npz"
+    common = [str(run), str(tmp_path / "limb.npz"), "-o", str(out)]
+    # a finite model whose roll-out is not finite: predict and complete write nothing
+    from meshseq import synthesize
+
+    monkeypatch.setattr(synthesize, "predict", lambda model, feats, n, **kw: np.full((n,) + feats.shape[1:], np.nan))
+    assert main(["predict", *common, "--frames", "3"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not finite" in err and "frame 1 of 4" in err and not out.exists()
+    monkeypatch.undo()
+    real_complete = synthesize.complete
+
+    def nan_complete(*args, **kwargs):
+        c = real_complete(*args, **kwargs)
+        c.frames[:, 2] = np.nan
+        return c
+
+    monkeypatch.setattr(synthesize, "complete", nan_complete)
+    assert main(["complete", *common, "--keyframes", "0,6"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not finite" in err and not out.exists()
+    monkeypatch.undo()
+    # NaN weights (a checkpoint of an older meshseq): refused by every loader
+    tensors = load_file(str(folder / "model.safetensors"))
+    tensors["model.fc.weight"][:] = float("nan")
+    save_file(tensors, str(folder / "model.safetensors"))
+    meta = json.loads((folder / "model.json").read_text())
+    meta["sha256"] = ckpt._sha256(folder / "model.safetensors")
+    (folder / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(MeshseqError, match="model.fc.weight: non-finite values"):
+        meshseq.load(folder)
+    for argv in (["predict", *common], ["complete", *common, "--keyframes", "0,6"],
+                 ["evaluate", str(run), str(tmp_path / "limb.npz"), "--gaps", "none", "--methods", "ours"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        lines = [line for line in err.splitlines() if line.startswith("meshseq: error:")]
+        assert len(lines) == 1 and "model.fc.weight: non-finite values" in lines[0] and "Traceback" not in err
+        assert not out.exists()

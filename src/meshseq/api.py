@@ -22,7 +22,6 @@ import torch
 
 from meshseq import checkpoint as ckpt
 from meshseq.errors import MeshseqError
-from meshseq.mesh import Topology
 from meshseq.model import BDLSTM, ModelConfig
 
 
@@ -30,6 +29,15 @@ def _to_torch(x, device) -> tuple[torch.Tensor, bool]:
     if isinstance(x, torch.Tensor):
         return x.to(device=device, dtype=torch.float32), False
     return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device), True
+
+
+def _check_finite(frames: np.ndarray, what: str) -> None:
+    """MeshseqError naming the first frame of ``frames`` ``(T, ...)`` with a NaN or infinity."""
+    ok = np.isfinite(frames.reshape(len(frames), -1)).all(axis=1) if frames.ndim > 1 else np.isfinite(frames)
+    if not ok.all():
+        t = int(np.flatnonzero(~ok)[0])
+        raise MeshseqError(f"the model's output is not finite ({what} of frame {t} of {len(frames)}): "
+                           "it diverged on this input")
 
 
 def _back(t: torch.Tensor, as_numpy: bool):
@@ -89,13 +97,20 @@ class Model:
         return self.scaling.apply(f).astype(np.float32)
 
     def vertices(self, x) -> np.ndarray:
-        """Scaled features ``(T, V, 9)`` -> vertices ``(T, V, 3)`` (centroid at the origin)."""
+        """Scaled features ``(T, V, 9)`` -> vertices ``(T, V, 3)`` (centroid at the origin).
+
+        MeshseqError if a frame's features or vertices are not finite (a diverged roll-out), so
+        nothing downstream writes or measures NaN frames.
+        """
         from meshseq import acap
 
         if self._reconstructor is None:
             self._reconstructor = acap.Reconstructor(self.reference, self.faces)
         x = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-        return self._reconstructor.solve(self.scaling.invert(x.astype(np.float64)))
+        _check_finite(x, "features")
+        v = self._reconstructor.solve(self.scaling.invert(x.astype(np.float64)))
+        _check_finite(v, "vertices")
+        return v
 
     # -- the network --------------------------------------------------------------------------
 
@@ -188,18 +203,15 @@ class Model:
 
 
 def load(run: str | os.PathLike, device: str = "cpu") -> Model:
-    """Load a trained model from a run folder (its newest checkpoint) or a checkpoint folder.
+    """Load a trained model from a run folder (its newest usable checkpoint) or a checkpoint folder.
 
-    Reads safetensors and JSON only (nothing is unpickled).
+    Reads safetensors and JSON only (nothing is unpickled), checked by
+    ``meshseq.checkpoint_schema``: a damaged or edited checkpoint, or one with non-finite
+    weights, is a one-line MeshseqError naming the file and field.
     """
     from meshseq.train import resolve_device
 
     dev = resolve_device(device)
-    meta, tensors = ckpt.read_model(run)
-    config = ModelConfig.from_dict(meta["model"])
-    reference = tensors["reference.vertices"].numpy().astype(np.float64)
-    faces = tensors["reference.faces"].numpy().astype(np.int64)
-    ckpt.check_topology(meta, faces, reference.shape[0], what=f"{run}: the stored reference mesh")
-    net = BDLSTM(config, Topology.from_faces(faces, reference.shape[0]))
-    net.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
-    return Model(net.to(dev), meta, reference, faces, dev)
+    loaded = ckpt.load(run)
+    return Model(loaded.net.to(dev), loaded.meta, loaded.reference.astype(np.float64),
+                 loaded.faces.astype(np.int64), dev)

@@ -127,13 +127,31 @@ def save_vae(vae: MeshVAE, folder: str | Path, info: dict) -> None:
 
 
 def load_vae(folder: str | Path, topology: Topology, device="cpu") -> tuple[MeshVAE, dict]:
-    """Inverse of ``save_vae`` (safetensors and JSON only: nothing unpickled)."""
+    """Inverse of ``save_vae`` (safetensors and JSON only: nothing unpickled).
+
+    MeshseqError (one line naming the file) if the files are damaged, do not match each other or
+    hold non-finite weights.
+    """
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
+    from meshseq import checkpoint_schema as schema
+    from meshseq.errors import MeshseqError
+
     folder = Path(folder)
-    meta = json.loads((folder / "vae.json").read_text())
-    vae = MeshVAE(ModelConfig.from_dict(meta["config"]), topology)
-    vae.load_state_dict(load_file(str(folder / "vae.safetensors")))
+    try:
+        meta = json.loads((folder / "vae.json").read_text())
+        tensors = load_file(str(folder / "vae.safetensors"))
+    except (OSError, ValueError, SafetensorError) as err:
+        raise MeshseqError(f"{folder}: damaged VAE baseline ({str(err).splitlines()[0]})") from None
+    schema.check(meta, {"config": schema.config_schema(ModelConfig)}, folder / "vae.json")
+    try:
+        config = ModelConfig.from_dict(meta["config"])
+    except MeshseqError as err:
+        raise MeshseqError(f"{folder / 'vae.json'}: config: {err}") from None
+    vae = MeshVAE(config, topology)
+    schema.check_like(tensors, vae.state_dict(), folder / "vae.safetensors", exact=True)
+    vae.load_state_dict(tensors)
     return vae.to(device).eval(), meta
 
 

@@ -8,9 +8,16 @@ A run folder ``RUN`` holds ``RUN/checkpoints/ITERATION/`` (zero-padded) folders,
 * ``model.json``: format, iteration, model config, training config, feature scaling, mesh
   topology hash, data set names and splits, and the SHA-256 of ``model.safetensors``;
 * ``state.safetensors``: Adam moments ``optim.<param name>.<key>``, the torch CPU generator state
-  ``rng.torch`` (uint8) and, on CUDA, ``rng.cuda``;
-* ``state.json``: Adam step counts and hyper-parameters, the numpy bit-generator state, Python's
-  ``random`` state and the SHA-256 of ``state.safetensors``.
+  ``rng.torch`` (uint8) and, on CUDA, ``rng.cuda``; under DistributedDataParallel every other
+  process's as ``rng.torch.rank<R>`` / ``rng.cuda.rank<R>`` (each rank draws its own noise);
+* ``state.json``: Adam step counts and hyper-parameters, the numpy bit-generator state (common to
+  all ranks), Python's ``random`` state, the number of processes and the SHA-256 of
+  ``state.safetensors``.
+
+Reading goes through :func:`load_folder` only, which checks everything against
+``meshseq.checkpoint_schema`` (JSON fields and types, tensor names, shapes, dtypes, finite
+values): a damaged or edited checkpoint is one MeshseqError naming the file and the field. A run's
+newest usable checkpoint is :func:`load_latest`; damaged ones never count toward ``keep``.
 
 A checkpoint folder is written under a temporary name and renamed into place
 (``meshseq.io.atomic_output``) after its files are flushed to disk, so a run killed at any moment
@@ -27,10 +34,12 @@ import random
 import re
 import shutil
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save
 
 from meshseq.errors import MeshseqError, MeshseqWarning
@@ -42,6 +51,11 @@ FORMAT_VERSION = 1
 MODEL_TENSORS, MODEL_META = "model.safetensors", "model.json"
 STATE_TENSORS, STATE_META = "state.safetensors", "state.json"
 _DIR_RE = re.compile(r"^\d{8}$")
+
+
+def is_checkpoint_name(name: str) -> bool:
+    """Whether ``name`` is a checkpoint folder's name (the zero-padded iteration)."""
+    return bool(_DIR_RE.match(name))
 
 
 def checkpoint_root(run_dir: str | os.PathLike) -> Path:
@@ -95,8 +109,14 @@ def save_checkpoint(
 ) -> Path:
     """Write ``RUN/checkpoints/<iteration>/`` atomically; keep the newest ``keep`` checkpoints.
 
-    Returns the checkpoint folder. An existing folder of the same iteration is replaced.
+    Returns the checkpoint folder. An existing folder of the same iteration is replaced. Only
+    complete, undamaged checkpoints count toward ``keep`` (a damaged one is left alone), and a
+    non-finite tensor is refused (MeshseqError) before anything is written.
     """
+    for what, tensors in (("model", model_tensors), ("training state", state_tensors)):
+        for name, t in tensors.items():
+            if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                raise MeshseqError(f"not writing checkpoint {int(iteration)}: {what} tensor {name} is not finite")
     root = checkpoint_root(run_dir)
     root.mkdir(parents=True, exist_ok=True)
     for pattern in (".tmp-*", ".old-*"):  # left by a killed run
@@ -114,7 +134,8 @@ def save_checkpoint(
         _write_json(tmp / STATE_META, smeta)
         _fsync_dir(tmp)
     _fsync_dir(root)
-    for old in list_checkpoints(run_dir)[:-keep] if keep > 0 else []:
+    kept = [f for f in list_checkpoints(run_dir) if f == final or is_valid(f)]
+    for old in kept[:-keep] if keep > 0 else []:
         if old != final:
             # rename first (atomic), then delete: a kill mid-delete must not leave a partial
             # folder under a checkpoint's name
@@ -132,67 +153,132 @@ def list_checkpoints(run_dir: str | os.PathLike) -> list[Path]:
     return sorted(p for p in root.iterdir() if p.is_dir() and _DIR_RE.match(p.name))
 
 
-def _read_meta(folder: Path, meta_name: str, tensor_name: str) -> dict:
+def _read_json(path: Path):
     try:
-        meta = json.loads((folder / meta_name).read_text())
+        return json.loads(path.read_text())
     except FileNotFoundError:
-        raise MeshseqError(f"{folder / meta_name}: missing (not a meshseq checkpoint)") from None
+        raise MeshseqError(f"{path}: missing (not a meshseq checkpoint)") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise MeshseqError(f"{folder / meta_name}: not valid JSON ({err})") from None
-    if not (folder / tensor_name).is_file():
-        raise MeshseqError(f"{folder / tensor_name}: missing")
-    if meta.get("sha256") != _sha256(folder / tensor_name):
-        raise MeshseqError(f"{folder / tensor_name}: contents do not match the SHA-256 in {meta_name}")
-    return meta
+        raise MeshseqError(f"{path}: not valid JSON ({err})") from None
+
+
+def _read_tensors(path: Path, meta: dict, meta_name: str) -> dict:
+    """The tensors of ``path`` if its SHA-256 is the one ``meta`` (already schema-checked) records."""
+    if not path.is_file():
+        raise MeshseqError(f"{path}: missing")
+    if meta["sha256"] != _sha256(path):
+        raise MeshseqError(f"{path}: contents do not match the SHA-256 in {meta_name}")
+    try:
+        return load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as err:
+        raise MeshseqError(f"{path}: not a safetensors file ({str(err).splitlines()[0]})") from None
+
+
+@dataclass
+class Loaded:
+    """A checkpoint that passed every check of ``meshseq.checkpoint_schema``.
+
+    ``folder``; ``meta``: model.json; ``net``: a CPU ``BDLSTM`` holding the stored weights;
+    ``reference`` ``(V, 3)`` float64 and ``faces`` ``(F, 3)`` int64: the stored mesh;
+    ``state_meta``/``state_tensors``: state.json and state.safetensors (None unless asked for).
+    """
+
+    folder: Path
+    meta: dict
+    net: object
+    reference: np.ndarray
+    faces: np.ndarray
+    state_meta: dict | None = None
+    state_tensors: dict | None = None
+
+    def __repr__(self) -> str:
+        return f"Loaded({str(self.folder)!r}, iteration={self.meta['iteration']})"
+
+
+def load_folder(folder: str | os.PathLike, with_state: bool = False) -> Loaded:
+    """Load and check one checkpoint folder (the model part; the training state too if asked).
+
+    MeshseqError (one line naming the file and field) if anything is missing, damaged or not
+    what the JSON describes, or if a weight is not finite.
+    """
+    from meshseq import checkpoint_schema as schema
+    from meshseq.mesh import Topology
+    from meshseq.model import BDLSTM, ModelConfig
+
+    folder = Path(folder)
+    iteration = int(folder.name) if _DIR_RE.match(folder.name) else None
+    meta = _read_json(folder / MODEL_META)
+    schema.check_model_meta(meta, folder / MODEL_META, iteration)
+    tensors = _read_tensors(folder / MODEL_TENSORS, meta, MODEL_META)
+    schema.check_reference(tensors, meta, folder / MODEL_TENSORS)
+    reference = tensors["reference.vertices"].numpy()
+    faces = tensors["reference.faces"].numpy()
+    net = BDLSTM(ModelConfig.from_dict(meta["model"]), Topology.from_faces(faces, len(reference)))
+    schema.check_model_tensors(tensors, net.state_dict(), folder / MODEL_TENSORS)
+    net.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    loaded = Loaded(folder, meta, net, reference, faces)
+    if with_state:
+        smeta = _read_json(folder / STATE_META)
+        schema.check_state_meta(smeta, folder / STATE_META, meta["iteration"])
+        stensors = _read_tensors(folder / STATE_TENSORS, smeta, STATE_META)
+        schema.check_state_tensors(stensors, smeta, dict(net.named_parameters()), folder / STATE_TENSORS)
+        loaded.state_meta, loaded.state_tensors = smeta, stensors
+    return loaded
 
 
 def is_valid(folder: Path) -> bool:
+    """Whether ``folder`` is a complete, undamaged checkpoint (model and training state)."""
     try:
-        _read_meta(folder, MODEL_META, MODEL_TENSORS)
-        _read_meta(folder, STATE_META, STATE_TENSORS)
+        load_folder(folder, with_state=True)
     except MeshseqError:
         return False
     return True
 
 
+def load_latest(run_dir: str | os.PathLike, with_state: bool = False) -> Loaded:
+    """The newest usable checkpoint of a run; a damaged newer one is skipped with a warning.
+
+    MeshseqError if the run has no checkpoint, or none is usable (naming the newest's problem).
+    """
+    folders = list_checkpoints(run_dir)
+    if not folders:
+        raise MeshseqError(f"{run_dir}: no checkpoint in {checkpoint_root(run_dir)}")
+    problems = []
+    for folder in reversed(folders):
+        try:
+            loaded = load_folder(folder, with_state)
+        except MeshseqError as err:
+            problems.append(err)
+            continue
+        for err in problems:
+            warnings.warn(f"damaged checkpoint skipped: {err}", MeshseqWarning)
+        return loaded
+    raise MeshseqError(f"{run_dir}: every checkpoint is damaged (the newest: {problems[0]})")
+
+
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
-    """The newest complete checkpoint folder of a run (a damaged newer one is skipped, with a warning)."""
-    for folder in reversed(list_checkpoints(run_dir)):
-        if is_valid(folder):
-            return folder
-        warnings.warn(f"{folder}: damaged checkpoint skipped", MeshseqWarning)
-    return None
+    """The newest complete checkpoint folder of a run (a damaged newer one is skipped, with a
+    warning), or None if there is none."""
+    try:
+        return load_latest(run_dir, with_state=True).folder
+    except MeshseqError:
+        return None
+
+
+def load(path: str | os.PathLike) -> Loaded:
+    """The model part of a checkpoint folder, or of a run folder's newest usable checkpoint."""
+    p = Path(path)
+    if (p / MODEL_META).is_file():
+        return load_folder(p)
+    if not p.exists():
+        raise MeshseqError(f"{p}: no such run or checkpoint folder")
+    return load_latest(p)
 
 
 def resolve(path: str | os.PathLike) -> Path:
-    """A run folder (-> its latest checkpoint) or a checkpoint folder -> the checkpoint folder."""
+    """A run folder (-> its latest usable checkpoint) or a checkpoint folder -> the checkpoint folder."""
     p = Path(path)
-    if (p / MODEL_META).is_file():
-        return p
-    if not p.exists():
-        raise MeshseqError(f"{p}: no such run or checkpoint folder")
-    found = latest_checkpoint(p)
-    if found is None:
-        raise MeshseqError(f"{p}: no complete checkpoint in {checkpoint_root(p)}")
-    return found
-
-
-def read_model(path: str | os.PathLike, device="cpu") -> tuple[dict, dict]:
-    """``(meta, tensors)`` of the model part of a checkpoint (run folder or checkpoint folder)."""
-    folder = resolve(path)
-    meta = _read_meta(folder, MODEL_META, MODEL_TENSORS)
-    if meta.get("format") != FORMAT:
-        raise MeshseqError(f"{folder / MODEL_META}: not a {FORMAT} file")
-    if int(meta.get("format_version", 0)) > FORMAT_VERSION:
-        raise MeshseqError(f"{folder / MODEL_META}: format version {meta['format_version']} is newer than this meshseq")
-    return meta, load_file(str(folder / MODEL_TENSORS), device=str(device))
-
-
-def read_state(folder: str | os.PathLike, device="cpu") -> tuple[dict, dict]:
-    """``(meta, tensors)`` of the training-state part of a checkpoint folder."""
-    folder = Path(folder)
-    meta = _read_meta(folder, STATE_META, STATE_TENSORS)
-    return meta, load_file(str(folder / STATE_TENSORS), device=str(device))
+    return p if (p / MODEL_META).is_file() else load(p).folder
 
 
 def check_topology(meta: dict, faces: np.ndarray, n_vertices: int, what: str = "the mesh") -> None:
@@ -256,6 +342,12 @@ def load_optimizer_state(optimizer: torch.optim.Optimizer, names: list[str], ten
     optimizer.load_state_dict({"state": state, "param_groups": groups})
 
 
+def rng_key(kind: str, rank: int = 0) -> str:
+    """Tensor name of a generator state (``kind`` torch or cuda): ``rng.torch`` for rank 0 and
+    single-process runs, ``rng.torch.rank<R>`` for the other processes of a distributed run."""
+    return f"rng.{kind}" if rank == 0 else f"rng.{kind}.rank{rank}"
+
+
 def rng_state() -> tuple[dict, dict]:
     """Torch (CPU, and CUDA if initialised) generator states as tensors; Python's as JSON."""
     tensors = {"rng.torch": torch.get_rng_state()}
@@ -265,10 +357,15 @@ def rng_state() -> tuple[dict, dict]:
     return tensors, {"python_random": [version, list(internal), gauss]}
 
 
-def set_rng_state(tensors: dict, meta: dict) -> None:
-    torch.set_rng_state(tensors["rng.torch"].cpu())
-    if "rng.cuda" in tensors and torch.cuda.is_available():
-        torch.cuda.set_rng_state(tensors["rng.cuda"].cpu())
+def set_rng_state(tensors: dict, meta: dict, rank: int = 0) -> bool:
+    """Restore this process's generators (``rank``'s torch and CUDA states, Python's); False if
+    the checkpoint has no torch state for ``rank`` (it was written by fewer processes)."""
     if "python_random" in meta:
         version, internal, gauss = meta["python_random"]
         random.setstate((version, tuple(internal), gauss))
+    if rng_key("torch", rank) not in tensors:
+        return False
+    torch.set_rng_state(tensors[rng_key("torch", rank)].cpu())
+    if rng_key("cuda", rank) in tensors and torch.cuda.is_available():
+        torch.cuda.set_rng_state(tensors[rng_key("cuda", rank)].cpu())
+    return True

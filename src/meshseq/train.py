@@ -25,7 +25,13 @@ Distributed: started by ``torchrun`` (env ``RANK``/``WORLD_SIZE``/``MASTER_ADDR`
 process joins a process group (NCCL on CUDA, Gloo on CPU) and trains a
 ``DistributedDataParallel`` copy; all ranks draw the same global batch of ``batch`` windows and
 each takes its ``batch / world_size`` share, so a step sees the same windows as a single process
-would. Rank 0 writes metrics and checkpoints.
+would. Rank 0 writes metrics and checkpoints, which hold every rank's generator state, so a
+resume repeats a multi-process run bit for bit (on CPU).
+
+Divergence: every iteration checks the weighted loss terms, their total and the gradient norm
+for NaN/infinity before the update (one host synchronisation; under DDP one all-reduce of the
+flag); the first non-finite value stops training with a MeshseqError naming the iteration and the
+term, and the last good checkpoint stays the newest.
 """
 
 from __future__ import annotations
@@ -221,6 +227,7 @@ class TrainingData:
     features: list[np.ndarray]
     faces: np.ndarray
     reference: np.ndarray
+    consistency: str = "temporal"  # the rotation consistency the features were extracted with
 
     @property
     def n_vertices(self) -> int:
@@ -250,7 +257,7 @@ def load_training_data(specs: list[str], consistency: str = "temporal") -> Train
             )
     reference = first.vertices[0].copy()
     feats = [acap.extract(s.vertices, s.faces, reference=reference, consistency=consistency) for s in seqs]
-    return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference)
+    return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference, consistency)
 
 
 def step_spread(scaled: list[np.ndarray], splits: list[Split], stride: int = 1) -> np.ndarray:
@@ -382,22 +389,60 @@ class Metrics:
 
 
 def _prepare_run_dir(run_dir: Path, resume: bool, force: bool) -> None:
-    ours = ("checkpoints", "metrics.csv", "tensorboard", ".tmp-metrics.csv")
     if run_dir.exists() and not run_dir.is_dir():
         raise MeshseqError(f"--out {run_dir}: exists and is not a folder")
     if run_dir.is_dir() and any(run_dir.iterdir()) and not resume:
         if not force:
             raise MeshseqError(f"--out {run_dir}: already exists and is not empty (use --resume to continue it "
                                "or --force to start over)")
-        import shutil
-
-        for name in ours:
-            p = run_dir / name
-            if p.is_dir():
-                shutil.rmtree(p)
-            elif p.exists():
-                p.unlink()
+        remove_run_outputs(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
+
+
+def remove_run_outputs(run_dir: Path) -> None:
+    """What ``--force`` deletes: the files training writes in ``run_dir`` (checkpoint folders,
+    metrics.csv, TensorBoard event files), nothing else; folders left empty are removed."""
+    import shutil
+
+    root = ckpt.checkpoint_root(run_dir)
+    if root.is_dir():
+        for p in root.iterdir():
+            if p.is_dir() and (ckpt.is_checkpoint_name(p.name) or p.name.startswith((".tmp-", ".old-"))):
+                shutil.rmtree(p)
+    for name in ("metrics.csv", ".tmp-metrics.csv"):
+        (run_dir / name).unlink(missing_ok=True)
+    for events in (run_dir / "tensorboard").glob("events.out.tfevents.*"):
+        events.unlink()
+    for folder in (root, run_dir / "tensorboard"):
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+
+
+def resume_point(run_dir: Path) -> "ckpt.Loaded":
+    """The checkpoint ``--resume`` continues from; MeshseqError (never a fresh start) if none is usable."""
+    try:
+        return ckpt.load_latest(run_dir, with_state=True)
+    except MeshseqError as err:
+        hint = ("leave out --resume to start a new run" if not ckpt.list_checkpoints(run_dir)
+                else "use --force without --resume to start over")
+        raise MeshseqError(f"--resume: {err}; {hint}") from None
+
+
+def grad_norm(parameters) -> torch.Tensor:
+    """The 2-norm of all gradients together, a 0-d tensor (no host synchronisation)."""
+    grads = [p.grad for p in parameters if p.grad is not None]
+    if hasattr(torch.nn.utils, "get_total_norm"):  # torch >= 2.6
+        return torch.nn.utils.get_total_norm(grads)
+    return torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
+
+
+def divergence(it: int, names: list[str], values: torch.Tensor, lr: float, last_checkpoint: str | None) -> str:
+    """The one-line error for a non-finite loss term or gradient norm; ``values`` ``(len(names),)``."""
+    bad = [(n, v) for n, v in zip(names, values.tolist()) if not math.isfinite(v)]
+    what = f"{bad[0][0]} is {bad[0][1]}" if bad else "another process's loss is not finite"
+    kept = f"the last good checkpoint is {last_checkpoint}" if last_checkpoint else "no checkpoint was written"
+    return (f"training diverged at iteration {it}: {what}; stopped before updating the weights ({kept}); "
+            f"try a smaller --lr than {lr:g}")
 
 
 def _stderr(msg: str) -> None:
@@ -423,8 +468,14 @@ def train(
             used, except ``iterations``, which may extend the run.
         model_options: ``ModelConfig`` fields other than ``n_vertices`` (variant, latent, ...).
         device: ``auto`` (CUDA if available), ``cpu``, ``cuda`` or ``cuda:N``.
-        resume: continue from the newest checkpoint in ``run_dir`` (fresh start if there is none).
-        force: start over in a non-empty ``run_dir`` (removes its checkpoints and metrics).
+        resume: continue from the newest usable checkpoint in ``run_dir``; MeshseqError if there
+            is none (a resume never starts over; its stored options are used).
+        force: start over in a non-empty ``run_dir`` (removes the checkpoints, metrics and
+            TensorBoard events training wrote there, nothing else).
+    Raises:
+        MeshseqError: bad options or data, nothing to resume, or divergence: a non-finite loss
+            term or gradient stops training before the update, naming the iteration and the
+            term; checkpoints are written only with finite weights.
     Returns:
         ``{"iteration", "checkpoint", "loss", "heldout_rec", "model"}`` after the last iteration
         (``model``: the trained ``BDLSTM``).
@@ -442,6 +493,9 @@ def train(
     if dev.type == "cpu":
         keep_freed_memory()  # reuse freed step-sized blocks instead of page-faulting fresh ones
     log = log if (is_main and log) else (lambda msg: None)
+    if resume and force:
+        raise MeshseqError("--resume and --force: choose one (--resume continues RUN, --force starts it over)")
+    found = resume_point(run_dir) if resume else None
     if is_main:
         _prepare_run_dir(run_dir, resume, force)
     if dist_info.active:
@@ -453,15 +507,12 @@ def train(
         if f.ndim != 3 or f.shape[1:] != (V, 9):
             raise MeshseqError(f"{name}: features must have shape (T, {V}, 9), got {f.shape}")
 
-    found = ckpt.latest_checkpoint(run_dir) if resume else None
-    if resume and found is None:
-        log(f"{run_dir}: no checkpoint yet, starting from iteration 0")
     if found is not None:
-        meta, model_tensors = ckpt.read_model(found)
+        meta = found.meta
         ckpt.check_topology(meta, faces, V, what="the training data")
         if [d["source"] for d in meta["datasets"]] != data.sources:
             raise MeshseqError(
-                f"--resume: {found} was trained on {[d['source'] for d in meta['datasets']]}, not {data.sources}"
+                f"--resume: {found.folder} was trained on {[d['source'] for d in meta['datasets']]}, not {data.sources}"
             )
         iterations = config.iterations
         config = TrainConfig.from_dict(meta["train"])
@@ -478,6 +529,10 @@ def train(
         scaling = Scaling.fit(train_feats, mode=config.scaling)
         model_config.input_norm = bool(config.input_norm)
 
+    if data.consistency != config.consistency:
+        stored = f"{found.folder} was trained on" if found is not None else "--consistency asks for"
+        raise MeshseqError(f"{stored} {config.consistency} features; the data were extracted with "
+                           f"{data.consistency} rotation consistency")
     scaled = [scaling.apply(f) for f in data.features]  # (T_d, V, 9) float64 each
     if found is None and config.step_scale == "data":
         model_config.step_scale = [float(v) for v in step_spread(scaled, splits, config.stride)]
@@ -490,23 +545,30 @@ def train(
     torch.manual_seed(config.seed)
     random.seed(config.seed)
     np_rng = np.random.default_rng(config.seed)
-    model = BDLSTM(model_config, topo)
-    if model_config.input_norm and found is None:
-        model.set_input_norm(np.concatenate([x[s.train_frames()] for x, s in zip(scaled, splits)]))
+    if found is None:
+        model = BDLSTM(model_config, topo)
+        if model_config.input_norm:
+            model.set_input_norm(np.concatenate([x[s.train_frames()] for x, s in zip(scaled, splits)]))
+    else:
+        model = found.net  # the stored weights, checked against the stored config
     model = model.to(dev)
     names = [n for n, _ in model.named_parameters()]
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr, betas=(0.9, 0.999))
     start = 0
+    own_rng = False
     if found is not None:
-        model.load_state_dict({k[len("model."):]: v for k, v in model_tensors.items() if k.startswith("model.")})
-        smeta, stensors = ckpt.read_state(found)
+        smeta, stensors = found.state_meta, found.state_tensors
         ckpt.load_optimizer_state(optimizer, names, stensors, smeta["optimizer"])
-        ckpt.set_rng_state(stensors, smeta)
+        own_rng = ckpt.set_rng_state(stensors, smeta, dist_info.rank)
         np_rng.bit_generator.state = smeta["numpy_rng"]
         start = int(meta["iteration"])
-        log(f"resumed {found} at iteration {start} (with its stored options; --iterations {config.iterations})")
-    if dist_info.rank > 0:
-        # different sampling noise per rank (the windows stay common); not restored bit for bit
+        log(f"resumed {found.folder} at iteration {start} (with its stored options; --iterations {config.iterations})")
+        stored_world = int(smeta.get("world_size", 1))
+        if stored_world < dist_info.world:
+            log(f"the checkpoint was written by {stored_world} process(es), not {dist_info.world}: the sampling "
+                f"noise of processes {stored_world}.. is reseeded (the run is not repeated bit for bit)")
+    if dist_info.rank > 0 and not own_rng:
+        # different sampling noise per rank (the windows stay common)
         torch.manual_seed(config.seed + 7919 * dist_info.rank + start)
 
     objective = WindowLoss(model, config)
@@ -523,7 +585,7 @@ def train(
     ]
     topo_meta = {"hash": topology_hash(faces, V), "n_vertices": V, "n_faces": int(len(faces))}
 
-    def save(iteration: int) -> Path:
+    def save(iteration: int, rng_t: dict) -> Path:
         tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
         tensors["reference.vertices"] = torch.from_numpy(np.asarray(data.reference, dtype=np.float64))
         tensors["reference.faces"] = torch.from_numpy(np.asarray(faces, dtype=np.int64))
@@ -538,9 +600,23 @@ def train(
             "world_size": dist_info.world,
         }
         opt_t, opt_meta = ckpt.optimizer_state(optimizer, names)
-        rng_t, rng_meta = ckpt.rng_state()
-        state_meta = {"optimizer": opt_meta, "numpy_rng": np_rng.bit_generator.state, **rng_meta}
+        _, rng_meta = ckpt.rng_state()
+        state_meta = {"optimizer": opt_meta, "numpy_rng": np_rng.bit_generator.state, "world_size": dist_info.world,
+                      **rng_meta}
         return ckpt.save_checkpoint(run_dir, iteration, tensors, meta, {**opt_t, **rng_t}, state_meta, config.keep)
+
+    def gather_rng() -> dict:
+        """Every process's torch (and CUDA) generator state, named by rank (every rank calls this)."""
+        own, _ = ckpt.rng_state()
+        if not dist_info.active:
+            return own
+        out = {}
+        for name, t in own.items():
+            t = t.to(dev)  # NCCL gathers CUDA tensors only
+            parts = [torch.empty_like(t) for _ in range(dist_info.world)]
+            torch.distributed.all_gather(parts, t)
+            out.update({ckpt.rng_key(name.split(".")[1], r): part.cpu() for r, part in enumerate(parts)})
+        return out
 
     def evaluate() -> dict:
         if len(eval_rows) == 0:
@@ -559,10 +635,13 @@ def train(
     share = config.batch // dist_info.world
     lo, hi = dist_info.rank * share, (dist_info.rank + 1) * share
     bar = _progress_bar(config.iterations - start) if (is_main and progress) else None
-    last: dict = {"iteration": start, "checkpoint": str(found) if found else None, "loss": None,
+    last: dict = {"iteration": start, "checkpoint": str(found.folder) if found else None, "loss": None,
                   "heldout_rec": None}
     t0 = time.perf_counter()
     collapse_warned = False
+    params = list(model.parameters())
+    checked = [k for k in ("rec", "bd", "kl", "l2") if getattr(config, f"w_{k}") != 0]
+    checked_names = [f"the loss term {k}" for k in checked] + ["the total loss", "the gradient norm"]
     try:
         if bar is not None:
             bar.start()
@@ -575,6 +654,15 @@ def train(
             with autocast(dev, config.precision):
                 total, terms = objective(windows, sample=config.sample, given=given)
             total.backward()
+            # one finiteness check per iteration, before the update: the weighted loss terms, the
+            # total and the norm of all gradients (after DDP's all-reduce, so common to all ranks)
+            health = torch.stack([terms[k].float() for k in checked] + [total.detach().float(),
+                                                                        grad_norm(params).float()])
+            finite = torch.isfinite(health).all().to(torch.int32)
+            if dist_info.active:
+                torch.distributed.all_reduce(finite, op=torch.distributed.ReduceOp.MIN)
+            if not bool(finite):
+                raise MeshseqError(divergence(it, checked_names, health.cpu(), config.lr, last["checkpoint"]))
             optimizer.step()
 
             row = None
@@ -599,8 +687,9 @@ def train(
             if bar is not None:
                 bar.update(task, completed=it)
             if config.checkpoint_every and it % config.checkpoint_every == 0 or it == config.iterations:
+                rng_t = gather_rng()
                 if is_main:
-                    last["checkpoint"] = str(save(it))
+                    last["checkpoint"] = str(save(it, rng_t))
                 if dist_info.active:
                     torch.distributed.barrier()
             last["iteration"] = it

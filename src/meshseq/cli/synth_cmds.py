@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from meshseq.errors import MeshseqError
+from meshseq.errors import MeshseqError, MeshseqWarning
 
 
 def register(sub) -> None:
@@ -119,9 +120,13 @@ def _vae(model, run: str, seq, feats: np.ndarray, exclude: tuple[int, int], iter
     run_dir = resolve(run)
     folder = (run_dir.parent.parent if run_dir.parent.name == "checkpoints" else run_dir) / "baselines" / "vae"
     if (folder / "vae.json").exists():
-        vae, meta = baselines.load_vae(folder, topo, model.device)
-        if meta.get("data") == seq.source and meta.get("exclude") == list(exclude):
-            return vae
+        try:
+            vae, meta = baselines.load_vae(folder, topo, model.device)
+        except MeshseqError as err:  # a cache: train a new one
+            warnings.warn(f"{err}; training a new VAE baseline", MeshseqWarning)
+        else:
+            if meta.get("data") == seq.source and meta.get("exclude") == list(exclude):
+                return vae
     frames = np.concatenate([feats[: exclude[0]], feats[exclude[1]:]])
     if len(frames) < 2:
         raise MeshseqError(f"{seq.source}: no training frames outside {exclude[0]}:{exclude[1]} for the VAE baseline")

@@ -37,9 +37,10 @@ def register(sub) -> None:
     p.add_argument("--precision", choices=("float32", "bf16"), default="float32",
                    help="bf16: autocast the training step to bfloat16 (float32 master weights; faster "
                         "on CPUs with AVX-512 BF16 and on GPUs; off by default)")
-    p.add_argument("--resume", action="store_true", help="continue RUN from its newest checkpoint "
-                   "(its stored options are used; --iterations may extend the run)")
-    p.add_argument("--force", action="store_true", help="start over in a non-empty RUN (deletes its checkpoints)")
+    p.add_argument("--resume", action="store_true", help="continue RUN from its newest undamaged checkpoint "
+                   "(its stored options are used; --iterations may extend the run); an error if RUN has none")
+    p.add_argument("--force", action="store_true", help="start over in a non-empty RUN (deletes the checkpoints, "
+                   "metrics and TensorBoard events training wrote there, nothing else)")
     m = p.add_argument_group("model")
     m.add_argument("--latent", type=int, default=128, help="latent width = LSTM width")
     m.add_argument("--lstm-layers", type=int, default=3, help="LSTM layers")
@@ -116,7 +117,12 @@ def _train(args) -> int:
         torch.set_num_threads(args.threads)
     model_options = {"variant": args.variant, "latent": args.latent, "lstm_layers": args.lstm_layers,
                      "conv_layers": args.conv_layers, "conv_impl": args.conv}
-    data = load_training_data(args.data, consistency=args.consistency)
+    consistency = args.consistency
+    if args.resume and not args.force:  # features as the run was trained on (its stored options)
+        from meshseq.train import resume_point
+
+        consistency = resume_point(out).meta["train"]["consistency"]
+    data = load_training_data(args.data, consistency=consistency)
     result = train(data, out, config, model_options, device=args.device, resume=args.resume, force=args.force,
                    progress=not args.no_progress)
     if result.get("checkpoint") and (not _dist_rank()):

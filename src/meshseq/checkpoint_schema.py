@@ -1,0 +1,345 @@
+"""What a checkpoint must hold: its JSON and its tensors, checked in one place on every load.
+
+``meshseq.checkpoint`` reads a checkpoint only through these checks, so an edited, truncated or
+foreign file is one ``MeshseqError`` naming the file and the field, e.g.
+``RUN/checkpoints/00000004/model.json: model.latent: expected an integer, got "16"``, never a
+traceback from deep inside torch or numpy, and never a model that trains to NaN.
+
+* :func:`check_model_meta` / :func:`check_state_meta`: JSON types by the schemas below
+  (``int``; ``float`` = any finite number; ``str``; ``bool``; dicts of fixed keys, ``Opt`` for
+  keys older checkpoints lack; lists; ``Each`` for dicts of any keys), then the values as the
+  configs check them (``ModelConfig``, ``TrainConfig``), the scaling (9 minima below 9 maxima),
+  the splits, the optimizer's hyper-parameters and the RNG states.
+* :func:`check_model_tensors` / :func:`check_state_tensors`: the names, shapes and dtypes the
+  model described by the JSON has, finite values, faces inside the vertex range.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+from dataclasses import MISSING, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from meshseq.errors import MeshseqError
+
+
+class CheckpointError(MeshseqError):
+    """A checkpoint file does not match its schema (a MeshseqError naming file and field)."""
+
+    def __init__(self, file: Path | str, field: str, message: str):
+        super().__init__(f"{file}: {field}: {message}" if field else f"{file}: {message}")
+
+
+class Opt:
+    """A dict key that may be absent (written by later meshseq versions than format 1's first)."""
+
+    def __init__(self, spec):
+        self.spec = spec
+
+
+class Each:
+    """A dict of any keys whose values all match ``spec``."""
+
+    def __init__(self, spec):
+        self.spec = spec
+
+
+_KINDS = {int: "an integer", float: "a finite number", str: "a string", bool: "true or false",
+          None: "null", dict: "an object", list: "a list"}
+
+
+def _show(value) -> str:
+    text = json.dumps(value) if isinstance(value, (int, float, str, bool, type(None))) else type(value).__name__
+    text = {"dict": "an object", "list": "a list"}.get(text, text)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _matches(value, kind) -> bool:
+    if kind is None:
+        return value is None
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, kind)
+
+
+def check(value, spec, file, field: str = "") -> None:
+    """CheckpointError unless ``value`` (parsed JSON) matches ``spec``; ``field`` is its dotted path."""
+    if isinstance(spec, tuple):  # any of
+        for alternative in spec:
+            try:
+                return check(value, alternative, file, field)
+            except CheckpointError:
+                pass
+        kinds = " or ".join(_KINDS[list if isinstance(k, list) else k] for k in spec)
+        raise CheckpointError(file, field, f"expected {kinds}, got {_show(value)}")
+    elif isinstance(spec, list):
+        if not isinstance(value, list):
+            raise CheckpointError(file, field, f"expected a list, got {_show(value)}")
+        for i, item in enumerate(value):
+            check(item, spec[0], file, f"{field}[{i}]")
+    elif isinstance(spec, Each):
+        if not isinstance(value, dict):
+            raise CheckpointError(file, field, f"expected an object, got {_show(value)}")
+        for key, item in value.items():
+            check(item, spec.spec, file, f"{field}.{key}" if field else key)
+    elif isinstance(spec, dict):
+        if not isinstance(value, dict):
+            raise CheckpointError(file, field, f"expected an object, got {_show(value)}")
+        for key, sub in spec.items():
+            name = f"{field}.{key}" if field else key
+            if key not in value:
+                if isinstance(sub, Opt):
+                    continue
+                raise CheckpointError(file, name, "missing")
+            check(value[key], sub.spec if isinstance(sub, Opt) else sub, file, name)
+    elif spec is not object and not _matches(value, spec):
+        raise CheckpointError(file, field, f"expected {_KINDS[spec]}, got {_show(value)}")
+
+
+# --------------------------------------------------------------------------------------------
+# model.json
+
+#: options added after format version 1 was first written: optional (the dataclass default)
+ADDED_LATER = {"given", "step_scale", "input_norm", "sample", "precision"}
+_ANNOTATIONS = {"int": int, "float": float, "str": str, "bool": bool, "list[float] | None": ([float], None)}
+
+
+def config_schema(cls) -> dict:
+    """The JSON schema of a config dataclass (``ModelConfig``, ``TrainConfig``) from its fields."""
+    schema = {}
+    for f in fields(cls):
+        spec = _ANNOTATIONS[f.type]
+        spec = spec if isinstance(spec, list | tuple) else (spec,)
+        schema[f.name] = Opt(spec) if f.name in ADDED_LATER and f.default is not MISSING else spec
+    return schema
+
+
+_SPLIT = {"n_frames": int, "train": [[int]], "heldout": [int]}
+_DATASET = {"name": str, "source": str, "n_frames": int, "split": _SPLIT}
+_SCALING = {"mode": str, "minimum": [float], "maximum": [float]}
+_TOPOLOGY = {"hash": str, "n_vertices": int, "n_faces": int}
+
+
+def model_meta_schema() -> dict:
+    from meshseq.model import ModelConfig
+    from meshseq.train import TrainConfig
+
+    return {
+        "format": str, "format_version": int, "iteration": int, "sha256": str,
+        "model": config_schema(ModelConfig), "train": config_schema(TrainConfig),
+        "scaling": _SCALING, "topology": _TOPOLOGY, "datasets": [_DATASET],
+        "features": Opt({"consistency": Opt(str), "reference": Opt(str)}),
+    }
+
+
+def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
+    """CheckpointError unless ``meta`` (model.json parsed) is a model.json this meshseq can use.
+
+    ``iteration``: the one the folder's name says, if it is a checkpoint folder.
+    """
+    from meshseq.acap.scaling import SCALING_MODES
+    from meshseq.checkpoint import FORMAT, FORMAT_VERSION
+    from meshseq.model import ModelConfig
+    from meshseq.train import TrainConfig
+
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise CheckpointError(file, "", f"not a {FORMAT} file")
+    check(meta, model_meta_schema(), file)
+    if meta["format_version"] > FORMAT_VERSION:
+        raise CheckpointError(file, "format_version",
+                              f"{meta['format_version']} is newer than this meshseq ({FORMAT_VERSION})")
+    _check_iteration(meta, file, iteration)
+    for key, cls in (("model", ModelConfig), ("train", TrainConfig)):
+        try:
+            cls.from_dict(meta[key])
+        except MeshseqError as err:
+            raise CheckpointError(file, key, str(err)) from None
+    model, topo = meta["model"], meta["topology"]
+    if model["channels"] != 9:
+        raise CheckpointError(file, "model.channels", f"{model['channels']}: ACAP features have 9 channels")
+    if topo["n_vertices"] != model["n_vertices"] or topo["n_vertices"] < 1 or topo["n_faces"] < 1:
+        raise CheckpointError(file, "topology", f"{topo['n_vertices']} vertices, {topo['n_faces']} faces, but the "
+                              f"model has {model['n_vertices']} vertices")
+    sc = meta["scaling"]
+    if sc["mode"] not in SCALING_MODES:
+        raise CheckpointError(file, "scaling.mode", f"{sc['mode']!r}: expected one of {', '.join(SCALING_MODES)}")
+    lo, hi = np.asarray(sc["minimum"], dtype=np.float64), np.asarray(sc["maximum"], dtype=np.float64)
+    if lo.shape != (9,) or hi.shape != (9,):
+        raise CheckpointError(file, "scaling", f"expected 9 minima and 9 maxima, got {lo.size} and {hi.size}")
+    if not np.all(hi > lo):
+        c = int(np.argmin(hi > lo))
+        raise CheckpointError(file, "scaling", f"channel {c}: maximum {hi[c]} is not above minimum {lo[c]}")
+    if not meta["datasets"]:
+        raise CheckpointError(file, "datasets", "empty")
+    for i, d in enumerate(meta["datasets"]):
+        _check_split(d, file, f"datasets[{i}]")
+    consistency = meta.get("features", {}).get("consistency", "temporal")
+    if consistency not in ("temporal", "spatial"):
+        raise CheckpointError(file, "features.consistency", f"{consistency!r}: expected temporal or spatial")
+
+
+def _check_iteration(meta: dict, file, iteration: int | None) -> None:
+    if meta["iteration"] < 0 or (iteration is not None and meta["iteration"] != iteration):
+        raise CheckpointError(file, "iteration", f"{meta['iteration']} does not match the folder name ({iteration})")
+
+
+def _check_split(d: dict, file, field: str) -> None:
+    n, s = d["n_frames"], d["split"]
+    spans = [("train", span) for span in s["train"]] + [("heldout", s["heldout"])]
+    for name, span in spans:
+        if len(span) != 2 or not 0 <= span[0] <= span[1] <= n:
+            raise CheckpointError(file, f"{field}.split.{name}", f"{span}: expected [start, stop] inside 0..{n}")
+    if s["n_frames"] != n or n < 1:
+        raise CheckpointError(file, f"{field}.split.n_frames", f"{s['n_frames']}: expected {n} (the data set's frames)")
+
+
+# --------------------------------------------------------------------------------------------
+# state.json
+
+_GROUP = Each((int, float, str, bool, None, list))
+_STATE = {
+    "iteration": int, "sha256": str,
+    "optimizer": {"scalars": Each(Each(float)), "param_groups": [_GROUP]},
+    "numpy_rng": dict,
+    "python_random": Opt(list),
+    "world_size": Opt(int),
+}
+
+
+def check_state_meta(meta, file: Path, iteration: int | None = None) -> None:
+    """CheckpointError unless ``meta`` (state.json parsed) holds usable optimizer and RNG states."""
+    check(meta, _STATE, file)
+    _check_iteration(meta, file, iteration)
+    groups = meta["optimizer"]["param_groups"]
+    if len(groups) != 1:
+        raise CheckpointError(file, "optimizer.param_groups", f"expected one parameter group, got {len(groups)}")
+    g = groups[0]
+    need = {"params": [str], "lr": float, "betas": [float], "eps": float, "weight_decay": float}
+    check(g, need, file, "optimizer.param_groups[0]")
+    if not g["lr"] > 0:
+        raise CheckpointError(file, "optimizer.param_groups[0].lr", f"{g['lr']}: expected a positive number")
+    if len(g["betas"]) != 2 or not all(0 <= b < 1 for b in g["betas"]):
+        raise CheckpointError(file, "optimizer.param_groups[0].betas", f"{g['betas']}: expected two numbers in [0, 1)")
+    if not g["eps"] > 0 or g["weight_decay"] < 0:
+        raise CheckpointError(file, "optimizer.param_groups[0]",
+                              f"eps {g['eps']} must be > 0, weight_decay {g['weight_decay']} >= 0")
+    for key, val in g.items():
+        if key not in need and not isinstance(val, (bool, type(None))):
+            raise CheckpointError(file, f"optimizer.param_groups[0].{key}",
+                                  f"expected true, false or null, got {_show(val)}")
+    for name, scalars in meta["optimizer"]["scalars"].items():
+        if any(v < 0 for v in scalars.values()):
+            raise CheckpointError(file, f"optimizer.scalars.{name}", "negative step count")
+    bit_generator = np.random.PCG64()
+    try:
+        bit_generator.state = meta["numpy_rng"]
+    except (TypeError, ValueError, KeyError, OverflowError) as err:
+        raise CheckpointError(file, "numpy_rng", f"not a numpy PCG64 state ({err})") from None
+    if "python_random" in meta:
+        try:
+            version, internal, gauss = meta["python_random"]
+            random.Random().setstate((version, tuple(internal), gauss))
+        except (TypeError, ValueError, OverflowError) as err:
+            raise CheckpointError(file, "python_random", f"not a Python random state ({err})") from None
+
+
+# --------------------------------------------------------------------------------------------
+# tensors
+
+
+def check_like(tensors: dict, expected: dict, file, exact: bool = False) -> None:
+    """CheckpointError unless ``tensors`` has ``expected``'s names, shapes and dtypes, finite
+    values (floating point) and, if ``exact``, no other tensors."""
+    missing = sorted(set(expected) - set(tensors))
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise CheckpointError(file, "", f"the file lacks tensor {missing[0]}{more}")
+    for name, want in expected.items():
+        got = tensors[name]
+        if got.dtype != want.dtype or tuple(got.shape) != tuple(want.shape):
+            raise CheckpointError(file, name, f"{got.dtype} {tuple(got.shape)}, expected {want.dtype} "
+                                  f"{tuple(want.shape)} (the model its JSON describes)")
+    extra = sorted(set(tensors) - set(expected))
+    if exact and extra:
+        raise CheckpointError(file, extra[0], "unexpected tensor (not part of the model its JSON describes)")
+    _check_finite({k: tensors[k] for k in expected}, file)
+
+
+def _check_finite(tensors: dict, file) -> None:
+    for name, t in tensors.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise CheckpointError(file, name, "non-finite values (NaN or infinity): the run diverged; use an "
+                                  "earlier checkpoint")
+
+
+def check_reference(tensors: dict, meta: dict, file: Path) -> None:
+    """CheckpointError unless model.safetensors holds the reference mesh of ``meta`` (model.json):
+    ``reference.vertices`` ``(V, 3)`` float64, finite, and ``reference.faces`` ``(F, 3)`` int64
+    in ``0..V-1`` with the stored connectivity hash."""
+    from meshseq.mesh import topology_hash
+
+    topo = meta["topology"]
+    V, F = topo["n_vertices"], topo["n_faces"]
+    want = {"reference.vertices": torch.empty((V, 3), dtype=torch.float64),
+            "reference.faces": torch.empty((F, 3), dtype=torch.int64)}
+    check_like(tensors, want, file)
+    faces = tensors["reference.faces"]
+    if int(faces.min()) < 0 or int(faces.max()) >= V:
+        raise CheckpointError(file, "reference.faces", f"vertex numbers outside 0..{V - 1}")
+    if topology_hash(faces.numpy(), V) != topo["hash"]:
+        raise CheckpointError(file, "reference.faces", f"connectivity hash differs from topology.hash {topo['hash']} "
+                              "in model.json")
+
+
+def check_model_tensors(tensors: dict, expected: dict, file: Path) -> None:
+    """CheckpointError unless model.safetensors holds ``model.<name>`` for every entry of
+    ``expected`` (the state dict of the model its JSON describes: same shapes and dtypes), finite,
+    besides the reference mesh (:func:`check_reference`), and nothing else."""
+    want = {f"model.{k}": v for k, v in expected.items()}
+    want.update({k: tensors[k] for k in ("reference.vertices", "reference.faces")})  # checked before
+    check_like(tensors, want, file, exact=True)
+
+
+def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> None:
+    """CheckpointError unless state.safetensors holds Adam moments ``optim.<param>.<key>`` shaped
+    like the parameters ``params`` (name -> tensor) for exactly the parameters with step counts in
+    ``meta`` (state.json), finite, and valid torch generator states ``rng.torch[.rankR]``."""
+    scalars = meta["optimizer"]["scalars"]
+    group = meta["optimizer"]["param_groups"][0]
+    if group["params"] != list(params):
+        raise CheckpointError(file.with_name("state.json"), "optimizer.param_groups[0].params",
+                              "does not list the model's parameters")
+    moments: dict = {}
+    for key, t in tensors.items():
+        if key.startswith("optim."):
+            name, _, sub = key[len("optim."):].rpartition(".")
+            if name not in params:
+                raise CheckpointError(file, key, "moments of an unknown parameter")
+            p = params[name]
+            if t.dtype != p.dtype or t.shape != p.shape:
+                raise CheckpointError(file, key, f"{t.dtype} {tuple(t.shape)}, expected {p.dtype} "
+                                      f"{tuple(p.shape)} (its parameter)")
+            moments.setdefault(name, set()).add(sub)
+        elif key == "rng.torch" or key.startswith("rng.torch.rank"):
+            try:
+                torch.Generator().set_state(t)
+            except (RuntimeError, TypeError) as err:
+                raise CheckpointError(file, key, f"not a torch generator state ({str(err).splitlines()[0]})") from None
+        elif key == "rng.cuda" or key.startswith("rng.cuda.rank"):
+            if t.dtype != torch.uint8 or t.dim() != 1:
+                raise CheckpointError(file, key, "not a CUDA generator state")
+        else:
+            raise CheckpointError(file, key, "unexpected tensor")
+    if "rng.torch" not in tensors:
+        raise CheckpointError(file, "", "lacks tensor rng.torch")
+    if set(moments) != set(scalars):
+        odd = sorted(set(moments) ^ set(scalars))[0]
+        raise CheckpointError(file, f"optim.{odd}", "moments and step count do not come together (state.json)")
+    _check_finite({k: v for k, v in tensors.items() if k.startswith("optim.")}, file)
