@@ -71,6 +71,7 @@ def dataset_specs(name: str, args) -> list[str]:
 
 
 def train_run(specs: list[str], name: str, run: Path, variant: str, args) -> dict:
+    from meshseq.checkpoint import list_checkpoints
     from meshseq.train import RECIPES, TrainConfig, load_training_data, train
 
     model_opts, weights = VARIANTS[variant]
@@ -80,7 +81,7 @@ def train_run(specs: list[str], name: str, run: Path, variant: str, args) -> dic
                          holdout=HOLDOUT.get(name, 0.2), **options)
     t0 = time.perf_counter()
     out = train(load_training_data(specs), run, config, model_options=dict(model_opts, latent=args.latent),
-                device=args.device, resume=True, progress=not args.quiet)
+                device=args.device, resume=bool(list_checkpoints(run)), progress=not args.quiet)
     return {"seconds": time.perf_counter() - t0, "iteration": out["iteration"], "loss": out["loss"]}
 
 

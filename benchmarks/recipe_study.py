@@ -164,7 +164,8 @@ def run_study(args) -> dict:
                          log_every=10, **options)
     run = Path(args.out) / args.name
     t0 = time.perf_counter()
-    train(data, run, config, model_options, device="cpu", resume=True, progress=not args.quiet)
+    train(data, run, config, model_options, device="cpu", resume=bool(ckpt.list_checkpoints(run)),
+          progress=not args.quiet)
     seconds = time.perf_counter() - t0
     metrics = read_metrics(run)
     curve = []
