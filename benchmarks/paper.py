@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import platform
-import time
 from pathlib import Path
 
 import torch
@@ -79,10 +78,20 @@ def train_run(specs: list[str], name: str, run: Path, variant: str, args) -> dic
     config = TrainConfig(iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride,
                          seed=args.seed, checkpoint_every=max(50, args.iterations // 4), eval_every=0,
                          holdout=HOLDOUT.get(name, 0.2), **options)
-    t0 = time.perf_counter()
     out = train(load_training_data(specs), run, config, model_options=dict(model_opts, latent=args.latent),
                 device=args.device, resume=bool(list_checkpoints(run)), progress=not args.quiet)
-    return {"seconds": time.perf_counter() - t0, "iteration": out["iteration"], "loss": out["loss"]}
+    return {"seconds": training_seconds(run), "iteration": out["iteration"], "loss": out["loss"]}
+
+
+def training_seconds(run: Path) -> float:
+    """Training time of a run over all its invocations, from its metrics.csv: ``seconds`` counts
+    from the start of each invocation, so every drop starts a new one."""
+    import csv
+
+    with open(run / "metrics.csv", newline="") as fh:
+        seconds = [float(r["seconds"]) for r in csv.DictReader(fh) if r.get("seconds")]
+    ends = [a for a, b in zip(seconds, seconds[1:]) if b < a]
+    return sum(ends) + (seconds[-1] if seconds else 0.0)
 
 
 def evaluate_run(data: str, run: Path, out_json: Path, plots: Path | None, args, baselines: bool) -> dict:
