@@ -54,6 +54,8 @@ class _Buffers:
                     raise MeshseqError(f"{self.path}: buffer {index} has a bad data URI") from None
             else:
                 file = self.path.parent / buf.uri
+                if not file.is_file():
+                    raise MeshseqError(f"{self.path}: buffer {index} refers to {file}, which is not a file")
                 try:
                     data = file.read_bytes()
                 except OSError:
