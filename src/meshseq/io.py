@@ -793,6 +793,32 @@ def _remove(path: Path) -> None:
             os.remove(path)
 
 
+def json_text(obj, *, indent: int | None = 2) -> str:
+    """Strict JSON text of ``obj`` for everything meshseq prints or writes as JSON.
+
+    NaN and +-inf (which ``json.dumps`` writes as the invalid tokens ``NaN``/``Infinity``) become
+    ``null``; numpy scalars and arrays become numbers and lists.
+    """
+    import json
+
+    def clean(x):
+        if isinstance(x, dict):
+            return {str(k): clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if isinstance(x, np.ndarray):
+            return clean(x.tolist())
+        if isinstance(x, (bool, np.bool_)):
+            return bool(x)
+        if isinstance(x, np.integer):
+            return int(x)
+        if isinstance(x, (float, np.floating)):
+            return float(x) if np.isfinite(x) else None
+        return x
+
+    return json.dumps(clean(obj), indent=indent, allow_nan=False)
+
+
 # --------------------------------------------------------------------------------------------
 # Saving
 
