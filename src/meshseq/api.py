@@ -196,7 +196,7 @@ def load(run: str | os.PathLike, device: str = "cpu") -> Model:
 
     dev = resolve_device(device)
     meta, tensors = ckpt.read_model(run)
-    config = ModelConfig.from_dict(meta["model"])
+    config = ModelConfig.from_dict(meta.get("model"), source=str(run))
     reference = tensors["reference.vertices"].numpy().astype(np.float64)
     faces = tensors["reference.faces"].numpy().astype(np.int64)
     ckpt.check_topology(meta, faces, reference.shape[0], what=f"{run}: the stored reference mesh")

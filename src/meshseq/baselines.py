@@ -130,7 +130,7 @@ def load_vae(folder: str | Path, topology: Topology, device="cpu") -> tuple[Mesh
 
     folder = Path(folder)
     meta = json.loads((folder / "vae.json").read_text())
-    vae = MeshVAE(ModelConfig.from_dict(meta["config"]), topology)
+    vae = MeshVAE(ModelConfig.from_dict(meta.get("config"), source=str(folder / "vae.json")), topology)
     vae.load_state_dict(load_file(str(folder / "vae.safetensors")))
     return vae.to(device).eval(), meta
 

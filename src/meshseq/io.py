@@ -37,6 +37,7 @@ import os
 import re
 import secrets
 import shutil
+import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -742,7 +743,10 @@ def atomic_output(path: str | os.PathLike, *, force: bool = False) -> Iterator[P
     """
     target = Path(path)
     _refuse_existing(target, force)
-    target.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise MeshseqError(f"{target}: cannot create its folder ({exc.strerror or _one_line(exc)})") from None
     token = secrets.token_hex(4)
     tmp = target.parent / f".tmp-{token}-{target.name}"
     try:
@@ -776,7 +780,28 @@ def check_output(path: str | os.PathLike, *, force: bool = False) -> Path:
     _refuse_existing(target, force)
     if target.suffix.lower() in (".mdd", ".pc2"):  # a point cache comes with its base mesh
         _refuse_existing(target.with_suffix(".obj"), force)
+    check_writable(target, target.parent)
     return target
+
+
+def check_writable(target: str | os.PathLike, folder: str | os.PathLike) -> None:
+    """MeshseqError naming ``target`` unless files can be created in ``folder`` (or, where it
+    does not exist yet, in its nearest existing ancestor, below which it would be created).
+
+    Refuses a path through a file (``-o notes.txt/out.npz``), a read-only folder or file system
+    and /proc, before any work starts: it creates and removes an empty temporary file there.
+    """
+    probe = Path(os.path.abspath(folder))
+    while not os.path.lexists(probe) and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise MeshseqError(f"{target}: cannot write there, {probe} is a file, not a folder")
+    try:
+        fd, name = tempfile.mkstemp(prefix=".tmp-probe-", dir=probe)
+    except OSError as exc:
+        raise MeshseqError(f"{target}: cannot write in {probe} ({exc.strerror or _one_line(exc)})") from None
+    os.close(fd)
+    os.remove(name)
 
 
 def _refuse_existing(target: Path, force: bool) -> None:
