@@ -137,8 +137,12 @@ def _read_meta(folder: Path, meta_name: str, tensor_name: str) -> dict:
         meta = json.loads((folder / meta_name).read_text())
     except FileNotFoundError:
         raise MeshseqError(f"{folder / meta_name}: missing (not a meshseq checkpoint)") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise MeshseqError(f"{folder / meta_name}: not valid JSON ({err})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as err:
+        raise MeshseqError(f"{folder / meta_name}: not valid JSON ({' '.join(str(err).split())})") from None
+    except OSError as err:
+        raise MeshseqError(f"{folder / meta_name}: cannot read ({err.strerror or err})") from None
+    if not isinstance(meta, dict):
+        raise MeshseqError(f"{folder / meta_name}: expected a JSON object, found {type(meta).__name__}")
     if not (folder / tensor_name).is_file():
         raise MeshseqError(f"{folder / tensor_name}: missing")
     if meta.get("sha256") != _sha256(folder / tensor_name):
@@ -183,16 +187,28 @@ def read_model(path: str | os.PathLike, device="cpu") -> tuple[dict, dict]:
     meta = _read_meta(folder, MODEL_META, MODEL_TENSORS)
     if meta.get("format") != FORMAT:
         raise MeshseqError(f"{folder / MODEL_META}: not a {FORMAT} file")
-    if int(meta.get("format_version", 0)) > FORMAT_VERSION:
+    version = meta.get("format_version", 0)
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise MeshseqError(f"{folder / MODEL_META}: format_version {version!r} is not an integer")
+    if version > FORMAT_VERSION:
         raise MeshseqError(f"{folder / MODEL_META}: format version {meta['format_version']} is newer than this meshseq")
-    return meta, load_file(str(folder / MODEL_TENSORS), device=str(device))
+    return meta, _load_tensors(folder / MODEL_TENSORS, device)
 
 
 def read_state(folder: str | os.PathLike, device="cpu") -> tuple[dict, dict]:
     """``(meta, tensors)`` of the training-state part of a checkpoint folder."""
     folder = Path(folder)
     meta = _read_meta(folder, STATE_META, STATE_TENSORS)
-    return meta, load_file(str(folder / STATE_TENSORS), device=str(device))
+    return meta, _load_tensors(folder / STATE_TENSORS, device)
+
+
+def _load_tensors(path: Path, device) -> dict:
+    """The tensors of a safetensors file; MeshseqError (one line) if it cannot be parsed."""
+    try:
+        return load_file(str(path), device=str(device))
+    except Exception as err:  # safetensors' SafetensorError, or OSError / ValueError from a damaged header
+        raise MeshseqError(f"{path}: cannot read safetensors ({type(err).__name__}: "
+                           f"{' '.join(str(err).split())}); damaged checkpoint?") from None
 
 
 def check_topology(meta: dict, faces: np.ndarray, n_vertices: int, what: str = "the mesh") -> None:

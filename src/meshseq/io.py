@@ -392,33 +392,40 @@ def _load_h5(path: Path, seq_name: str | None, *, name: str | None) -> MeshSeque
     import h5py
 
     try:
-        handle = h5py.File(path, "r")
-    except Exception as exc:
-        raise MeshseqError(f"{path}: cannot read HDF5 ({_one_line(exc)})") from None
-    with handle:
-        names = sorted(k for k in handle.keys() if k != "faces" and isinstance(handle[k], h5py.Dataset))
-        few = ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
-        if seq_name is None or seq_name == "":
-            raise MeshseqError(f"{path}: name the sequence as {path}:NAME (available: {few or 'none'})")
-        address = f"{path}:{seq_name}"
-        if seq_name not in handle:
-            raise MeshseqError(f"{address}: no sequence {seq_name!r} in the file (available: {few or 'none'})")
-        if not isinstance(handle[seq_name], h5py.Dataset):
-            raise MeshseqError(f"{address}: {seq_name!r} is an HDF5 group, not a sequence dataset "
-                               f"(available: {few or 'none'})")
-        if not isinstance(handle.get("faces"), h5py.Dataset):
-            raise MeshseqError(f"{path}: no 'faces' dataset")
-        try:
-            raw = np.asarray(handle[seq_name][()])
-            faces = np.asarray(handle["faces"][()])
-            fps = _positive_number(handle[seq_name].attrs.get("fps", handle.attrs.get("fps")))
-        except Exception as exc:
-            raise MeshseqError(f"{address}: cannot read ({_one_line(exc)})") from None
+        with h5py.File(path, "r") as handle:
+            raw, faces, fps = _h5_arrays(handle, path, seq_name)
+    except MeshseqError:
+        raise
+    except Exception as exc:  # a damaged file fails anywhere in h5py (OSError, RuntimeError, KeyError...)
+        raise MeshseqError(f"{path}: cannot read HDF5 ({_one_line(exc)}); truncated or corrupt file?") from None
+    address = f"{path}:{seq_name}"
     if raw.ndim != 3 or raw.shape[1] != 3:
         raise MeshseqError(f"{address}: expected vertices stored as (V, 3, T), got {raw.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
         raise MeshseqError(f"{path}: 'faces' must be integers of shape (F, 3), got {faces.shape} {faces.dtype}")
     return validate_sequence(np.transpose(raw, (2, 0, 1)), faces, name=name or seq_name, source=address, fps=fps)
+
+
+def _h5_arrays(handle, path: Path, seq_name: str | None) -> tuple[np.ndarray, np.ndarray, float | None]:
+    """``(raw (V, 3, T), faces, fps)`` of sequence ``seq_name`` of an open Dyna-style HDF5 file."""
+    import h5py
+
+    names = sorted(k for k in handle.keys() if k != "faces" and isinstance(handle[k], h5py.Dataset))
+    few = ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
+    if seq_name is None or seq_name == "":
+        raise MeshseqError(f"{path}: name the sequence as {path}:NAME (available: {few or 'none'})")
+    address = f"{path}:{seq_name}"
+    if seq_name not in handle:
+        raise MeshseqError(f"{address}: no sequence {seq_name!r} in the file (available: {few or 'none'})")
+    if not isinstance(handle[seq_name], h5py.Dataset):
+        raise MeshseqError(f"{address}: {seq_name!r} is an HDF5 group, not a sequence dataset "
+                           f"(available: {few or 'none'})")
+    if not isinstance(handle.get("faces"), h5py.Dataset):
+        raise MeshseqError(f"{path}: no 'faces' dataset")
+    raw = np.asarray(handle[seq_name][()])
+    faces = np.asarray(handle["faces"][()])
+    fps = _positive_number(handle[seq_name].attrs.get("fps", handle.attrs.get("fps")))
+    return raw, faces, fps
 
 
 def _positive_number(value) -> float | None:
@@ -432,7 +439,10 @@ def _positive_number(value) -> float | None:
 
 
 def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
+    try:
+        text = " ".join(str(exc).split())
+    except Exception:  # some library exceptions cannot even be printed (undecodable bytes)
+        text = ""
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
@@ -527,6 +537,8 @@ def _read_obj(data: bytes, path: Path) -> _Frame:
     else:  # some lines carry w or colours (or are broken): parse line by line
         vlines = vblock.split(b"\n")
         counts = np.fromiter(map(len, map(bytes.split, vlines)), dtype=np.int64, count=n_v) - 1
+        if counts.sum() != len(coords):
+            raise MeshseqError(f"{path}: a 'v' line holds a stray 'v' among its coordinates; corrupt file?")
         short = np.flatnonzero(counts < 3)
         if len(short):
             k = int(short[0])
@@ -581,6 +593,8 @@ def _polygons_to_triangles(idx: np.ndarray, counts: np.ndarray | None, path: Pat
 def _read_off(data: bytes, path: Path) -> _Frame:
     lines = [ln.split(b"#", 1)[0].strip() for ln in data.split(b"\n")]
     lines = [ln for ln in lines if ln]
+    if not lines:
+        raise MeshseqError(f"{path}: not an OFF file (nothing but comments)")
     header = lines[0].split()
     if not header or not header[0].endswith(b"OFF"):
         raise MeshseqError(f"{path}: not an OFF file (first line {lines[0][:20]!r})")
@@ -596,6 +610,8 @@ def _read_off(data: bytes, path: Path) -> _Frame:
         n_v, n_f = int(rest[0]), int(rest[1])
     except (ValueError, IndexError):
         raise MeshseqError(f"{path}: bad OFF counts line {b' '.join(rest)[:40]!r}") from None
+    if n_v < 1 or n_f < 0:
+        raise MeshseqError(f"{path}: OFF header declares {n_v} vertices and {n_f} faces; corrupt file?")
     if len(body) < n_v + n_f:
         raise MeshseqError(f"{path}: OFF header promises {n_v} vertices and {n_f} faces but the file has "
                            f"only {len(body)} data lines; truncated file?")
