@@ -83,10 +83,9 @@ def register(sub) -> None:
 
 def _train(args) -> int:
     from meshseq.errors import MeshseqError
-    from meshseq.train import TrainConfig, load_training_data, train
-
     from meshseq.io import check_writable
     from meshseq.model import ModelConfig
+    from meshseq.train import TrainConfig, load_training_data, train
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
