@@ -273,7 +273,7 @@ SCHEMA_CASES = {
     "window a float": (_edit_json(M, _set(["train", "window"], 6.5)), M, "train.window: expected an integer"),
     "topology missing": (_edit_json(M, _delete(["topology"])), M, "topology: missing"),
     "vertex count differs": (_edit_json(M, _set(["model", "n_vertices"], 7)), M, "topology"),
-    "unknown variant": (_edit_json(M, _set(["model", "variant"], "bi")), M, "model: --variant 'bi'"),
+    "unknown variant": (_edit_json(M, _set(["model", "variant"], "bi")), M, "stored field model.variant = 'bi': expected one of bd, std-bd, uni"),
     "held-out block outside": (_edit_json(M, _set(["datasets", 0, "split", "heldout"], [24, 99])), M,
                                "datasets[0].split.heldout"),
     "no data sets": (_edit_json(M, _set(["datasets"], [])), M, "datasets: empty"),

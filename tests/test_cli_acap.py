@@ -149,3 +149,58 @@ def test_sigterm_mid_write_leaves_no_output_and_no_temporary(tmp_path):
     # interrupt unwound the atomic write, which is what this test is about:
     assert proc.wait(timeout=60) in (130, -signal.SIGINT)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cache"]
+
+
+def _strict_json(text: str):
+    """json.loads that refuses NaN / Infinity (which Python's json module accepts, but JSON does not)."""
+    def refuse(token):
+        raise ValueError(f"invalid JSON token {token}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_json_text_writes_non_finite_numbers_as_null():
+    from meshseq.io import json_text
+
+    values = {"a": float("nan"), "b": [np.inf, -np.inf, np.float32(1.5)], "c": np.arange(3), "d": np.bool_(True),
+              "e": (np.int64(4), None, "x"), "f": np.array([np.nan, 2.0])}
+    assert _strict_json(json_text(values)) == {"a": None, "b": [None, None, 1.5], "c": [0, 1, 2], "d": True,
+                                               "e": [4, None, "x"], "f": [None, 2.0]}
+
+
+def test_zero_size_mesh_gives_strict_json_or_one_line_error(tmp_path, capsys):
+    """Issue 13 (5): a mesh whose faces are all degenerate (every vertex at one point) printed
+    "mean_error_rel": NaN, which is not JSON; --exact crashed in the Cholesky factorisation."""
+    faces = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]])
+    np.savez(tmp_path / "point.npz", vertices=np.ones((3, 4, 3)), faces=faces)
+    for extra in ([], ["--exact"]):
+        assert main(["roundtrip", str(tmp_path / "point.npz"), "--json", *extra]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("meshseq: error: ") and "all vertices are at one point" in err[-1]
+        assert not any("Traceback" in line or "RuntimeWarning" in line for line in err)
+    assert main(["info", str(tmp_path / "point.npz"), "--json"]) == 0
+    info = _strict_json(capsys.readouterr().out)
+    assert info["diag"] == 0.0 and info["degenerate_faces"] == 4
+
+
+def test_info_describes_several_sequences(limb_npz, tmp_path, capsys):
+    """Issue 13 (6): `meshseq info a.npz b.npz` said ".npz is unsupported". Several whole
+    sequences are each described (a JSON list); several mesh files stay the frames of one."""
+    other = tmp_path / "other.npz"
+    save_sequence(twisting_limb(frames=12), other)
+    assert main(["info", str(limb_npz), str(other), "--json", "--no-jumps"]) == 0
+    infos = _strict_json(capsys.readouterr().out)
+    assert [i["frames"] for i in infos] == [30, 12] and infos[1]["source"] == str(other)
+    assert main(["info", str(limb_npz), str(other), "--no-jumps"]) == 0
+    out = capsys.readouterr().out
+    assert f"info: {limb_npz}" in out and f"info: {other}" in out
+    save_sequence(twisting_limb(frames=3), tmp_path / "frames")
+    frame_files = sorted(str(p) for p in (tmp_path / "frames").iterdir())
+    assert main(["info", *frame_files, "--json", "--no-jumps"]) == 0
+    assert _strict_json(capsys.readouterr().out)["frames"] == 3
+    assert main(["info", str(limb_npz), frame_files[0]]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "mixes mesh files" in err and frame_files[0] in err
+    assert main(["roundtrip", str(limb_npz), str(other)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{limb_npz}: several DATA are the frames of one sequence" in err

@@ -390,6 +390,113 @@ def test_npz_missing_keys_and_wrong_shapes(tmp_path):
     expect_error(tmp_path / "d.npz", "d.npz: 'faces' must be integers", root=tmp_path)
 
 
+PLY_HEAD = "ply\nformat ascii 1.0\nelement vertex {n}\n{props}element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+
+
+def test_extreme_coordinates_and_wrong_dtypes_are_one_line_errors(tmp_path):
+    """Issue 13 (5): coordinates near 1e200 (overflow in every product), a mesh 1e-200 across,
+    complex and bool vertex arrays are refused by name; nothing is computed on them."""
+    v = octa_frames(3)
+    np.savez(tmp_path / "huge.npz", vertices=v * 1e200, faces=OCTA_F)
+    expect_error(tmp_path / "huge.npz", "huge.npz frame 0: coordinate", "beyond +-1e+30", "rescale", root=tmp_path)
+    big = v.copy()
+    big[2, 4, 1] = -5e35
+    np.savez(tmp_path / "big.npz", vertices=big, faces=OCTA_F)
+    expect_error(tmp_path / "big.npz", "big.npz frame 2: coordinate 5e+35 at vertex 4", root=tmp_path)
+    np.savez(tmp_path / "tiny.npz", vertices=v * 1e-200, faces=OCTA_F)
+    expect_error(tmp_path / "tiny.npz", "tiny.npz frame 0: the mesh is only", "too small", root=tmp_path)
+    np.savez(tmp_path / "cplx.npz", vertices=v.astype(complex), faces=OCTA_F)
+    expect_error(tmp_path / "cplx.npz", "cplx.npz: vertices must be real numbers", "complex128", root=tmp_path)
+    np.savez(tmp_path / "bool.npz", vertices=v > 0, faces=OCTA_F)
+    expect_error(tmp_path / "bool.npz", "bool.npz: vertices must be real numbers", "bool", root=tmp_path)
+    with pytest.raises(MeshseqError, match="vertices must be real numbers"):
+        MeshSequence(np.array([[["1", "2", "3"]]]), [[0, 0, 0]])
+    # within the limits: 1e29 and a mesh 1e-29 across load as they are
+    for scale in (1e29, 1e-29):
+        np.savez(tmp_path / "ok.npz", vertices=v * scale, faces=OCTA_F)
+        assert np.array_equal(load_sequence(tmp_path / "ok.npz").vertices, v * scale)
+
+
+def test_huge_face_indices_are_one_line_errors(tmp_path):
+    """Issue 13 (5): an index beyond int64 raised OverflowError."""
+    (tmp_path / "a.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 99999999999999999999\n")
+    expect_error(tmp_path / "a.obj", "a.obj: face index beyond 64-bit integers (99999999999999999999)",
+                 root=tmp_path)
+    (tmp_path / "a.off").write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 99999999999999999999\n")
+    expect_error(tmp_path / "a.off", "a.off: face index beyond 64-bit integers", root=tmp_path)
+    (tmp_path / "b.off").write_text("OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n99999999999999999999 0 1 2\n")
+    expect_error(tmp_path / "b.off", "b.off: face size beyond 64-bit integers", root=tmp_path)
+
+
+def test_ply_header_problems_name_what_is_missing(tmp_path):
+    """Issue 13 (6): a PLY without z said "KeyError: 'z'"; one declaring 100 vertices and
+    holding 3 blamed the faces."""
+    xy = "property float x\nproperty float y\n"
+    (tmp_path / "noz.ply").write_text(PLY_HEAD.format(n=3, props=xy) + "0 0\n1 0\n0 1\n3 0 1 2\n")
+    expect_error(tmp_path / "noz.ply", "noz.ply: PLY vertices have no z property (they have x, y)", root=tmp_path)
+    xyz = xy + "property float z\n"
+    body = "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    (tmp_path / "short.ply").write_text(PLY_HEAD.format(n=100, props=xyz) + body)
+    msg = expect_error(tmp_path / "short.ply", "short.ply: header declares 100 vertices", "truncated",
+                       root=tmp_path)
+    assert "face" not in msg
+    save_sequence(MeshSequence(OCTA_V[None], OCTA_F), tmp_path / "bin.ply")
+    data = (tmp_path / "bin.ply").read_bytes()
+    (tmp_path / "bin.ply").write_bytes(data.replace(b"element vertex 6", b"element vertex 60"))
+    expect_error(tmp_path / "bin.ply", "bin.ply: header declares 60 vertices", root=tmp_path)
+    (tmp_path / "ok.ply").write_text(PLY_HEAD.format(n=3, props=xyz) + body)
+    assert load_sequence(tmp_path / "ok.ply").n_vertices == 3
+
+
+def test_h5_group_instead_of_a_sequence(tmp_path):
+    """Issue 13 (6): FILE.h5:GROUP gave an h5py TypeError."""
+    with h5py.File(tmp_path / "d.h5", "w") as h:
+        h.create_group("grp")
+        h["faces"] = OCTA_F
+        h["walk"] = np.transpose(octa_frames(3), (1, 2, 0))
+        h["walk"].attrs["fps"] = "not a number"
+    expect_error(f"{tmp_path / 'd.h5'}:grp", "d.h5:grp: 'grp' is an HDF5 group, not a sequence dataset "
+                 "(available: walk)", root=tmp_path)
+    assert load_sequence(f"{tmp_path / 'd.h5'}:walk").fps is None  # a bad fps attribute is ignored
+
+
+def test_fifo_and_other_non_regular_files_are_refused(tmp_path):
+    """Issue 13 (6): reading a FIFO waited forever (an alarm turns a hang into a failure)."""
+    import signal
+
+    def hang(signum, frame):
+        raise AssertionError("reading a FIFO hangs")
+
+    old = signal.signal(signal.SIGALRM, hang)
+    signal.alarm(20)
+    try:
+        _check_fifos(tmp_path)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def _check_fifos(tmp_path):
+    for name in ("f.obj", "f.npz", "f.h5", "f.pc2", "f.glb"):
+        os.mkfifo(tmp_path / name)
+    for spec in ("f.obj", "f.npz", "f.h5:seq", "f.pc2", "f.glb", "f.glb:Mesh"):
+        expect_error(f"{tmp_path}/{spec}", f"{tmp_path / spec.split(':')[0]}: not a regular file")
+    write_obj(tmp_path / "base.obj", OCTA_V, OCTA_F)
+    expect_error(f"{tmp_path / 'base.obj'}:{tmp_path / 'f.pc2'}", "f.pc2: not a regular file")
+    expect_error(f"{tmp_path / 'f.obj'}:{tmp_path / 'x.pc2'}", "does not exist")
+    expect_error([tmp_path / "base.obj", tmp_path / "f.obj"], "f.obj: not a regular file")
+    expect_error(Path("/dev/null"), "/dev/null: not a regular file")
+
+
+def test_a_list_of_files_holds_frames_not_sequences(tmp_path, octa_seq):
+    """Issue 13 (6): `info a.npz b.npz` said ".npz is unsupported"; a list is frames of one sequence."""
+    save_sequence(octa_seq, tmp_path / "a.npz")
+    save_sequence(octa_seq, tmp_path / "b.npz")
+    expect_error([tmp_path / "a.npz", tmp_path / "b.npz"], "a.npz: several DATA are the frames of one sequence",
+                 "give the sequence", root=tmp_path)
+    expect_error([tmp_path / "a.obj", tmp_path / "b.h5:x"], "a.obj: path does not exist")
+
+
 # ------------------------------------------------------------------------------------------
 # Repairs and warnings
 

@@ -145,10 +145,7 @@ def load_vae(folder: str | Path, topology: Topology, device="cpu") -> tuple[Mesh
     except (OSError, ValueError, SafetensorError) as err:
         raise MeshseqError(f"{folder}: damaged VAE baseline ({str(err).splitlines()[0]})") from None
     schema.check(meta, {"config": schema.config_schema(ModelConfig)}, folder / "vae.json")
-    try:
-        config = ModelConfig.from_dict(meta["config"])
-    except MeshseqError as err:
-        raise MeshseqError(f"{folder / 'vae.json'}: config: {err}") from None
+    config = ModelConfig.from_dict(meta["config"], source=str(folder / "vae.json"))
     vae = MeshVAE(config, topology)
     schema.check_like(tensors, vae.state_dict(), folder / "vae.safetensors", exact=True)
     vae.load_state_dict(tensors)

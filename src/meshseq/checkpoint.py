@@ -158,8 +158,10 @@ def _read_json(path: Path):
         return json.loads(path.read_text())
     except FileNotFoundError:
         raise MeshseqError(f"{path}: missing (not a meshseq checkpoint)") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise MeshseqError(f"{path}: not valid JSON ({err})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as err:
+        raise MeshseqError(f"{path}: not valid JSON ({' '.join(str(err).split())})") from None
+    except OSError as err:
+        raise MeshseqError(f"{path}: cannot read ({err.strerror or err})") from None
 
 
 def _read_tensors(path: Path, meta: dict, meta_name: str) -> dict:
@@ -170,8 +172,9 @@ def _read_tensors(path: Path, meta: dict, meta_name: str) -> dict:
         raise MeshseqError(f"{path}: contents do not match the SHA-256 in {meta_name}")
     try:
         return load_file(str(path))
-    except (SafetensorError, OSError, ValueError) as err:
-        raise MeshseqError(f"{path}: not a safetensors file ({str(err).splitlines()[0]})") from None
+    except Exception as err:  # SafetensorError, or OSError / ValueError / others from a damaged header
+        first = (str(err).splitlines() or [type(err).__name__])[0]
+        raise MeshseqError(f"{path}: not a safetensors file ({first})") from None
 
 
 @dataclass
@@ -213,7 +216,8 @@ def load_folder(folder: str | os.PathLike, with_state: bool = False) -> Loaded:
     schema.check_reference(tensors, meta, folder / MODEL_TENSORS)
     reference = tensors["reference.vertices"].numpy()
     faces = tensors["reference.faces"].numpy()
-    net = BDLSTM(ModelConfig.from_dict(meta["model"]), Topology.from_faces(faces, len(reference)))
+    net = BDLSTM(ModelConfig.from_dict(meta["model"], source=str(folder / MODEL_META)),
+                 Topology.from_faces(faces, len(reference)))
     schema.check_model_tensors(tensors, net.state_dict(), folder / MODEL_TENSORS)
     net.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
     loaded = Loaded(folder, meta, net, reference, faces)

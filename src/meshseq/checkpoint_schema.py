@@ -156,11 +156,11 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
         raise CheckpointError(file, "format_version",
                               f"{meta['format_version']} is newer than this meshseq ({FORMAT_VERSION})")
     _check_iteration(meta, file, iteration)
-    for key, cls in (("model", ModelConfig), ("train", TrainConfig)):
-        try:
-            cls.from_dict(meta[key])
-        except MeshseqError as err:
-            raise CheckpointError(file, key, str(err)) from None
+    ModelConfig.from_dict(meta["model"], source=str(file))  # names the file and the stored field
+    try:
+        TrainConfig.from_dict(meta["train"])
+    except MeshseqError as err:
+        raise CheckpointError(file, "train", str(err)) from None
     model, topo = meta["model"], meta["topology"]
     if model["channels"] != 9:
         raise CheckpointError(file, "model.channels", f"{model['channels']}: ACAP features have 9 channels")

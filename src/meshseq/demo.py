@@ -15,7 +15,6 @@ and completes held-out motion, compares with the baselines, and writes into one 
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from dataclasses import dataclass
@@ -70,7 +69,7 @@ def run_demo(out: Path, *, iterations: int = 300, data: str = "auto", force: boo
     """Run the whole demonstration into ``out`` (written atomically); returns the error table."""
     from meshseq import baselines, evaluate, export, render, synthesize
     from meshseq.api import load
-    from meshseq.io import atomic_output, check_output, load_sequence
+    from meshseq.io import atomic_output, check_output, json_text, load_sequence
     from meshseq.train import TrainConfig, load_training_data, train
 
     check_output(out, force=force)
@@ -133,7 +132,7 @@ def run_demo(out: Path, *, iterations: int = 300, data: str = "auto", force: boo
 
         result = {"data": demo_data.description, "dataset": seq.name, "heldout": [lo, hi],
                   "iterations": iterations, "train_seconds": t_train, "units": "x1e-4", "errors": table}
-        (tmp / "errors.json").write_text(json.dumps(result, indent=2))
+        (tmp / "errors.json").write_text(json_text(result))
         (tmp / "errors.md").write_text(errors_markdown(result))
     result["total_seconds"] = time.perf_counter() - t_start
     return result

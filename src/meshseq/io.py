@@ -37,6 +37,7 @@ import os
 import re
 import secrets
 import shutil
+import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +48,12 @@ import numpy as np
 from meshseq.errors import MeshseqError, MeshseqWarning
 
 MESH_EXTENSIONS = (".obj", ".ply", ".off")
+#: Coordinates beyond +-MAX_COORDINATE, or frames smaller than MIN_EXTENT (their largest bounding-box
+#: side; 0, a frame collapsed to one point, is allowed), are refused: the geometry multiplies up
+#: to four coordinates (areas, Gram matrices, determinants), which overflows float64 from about
+#: 1e77 and underflows below about 1e-77; 1e30 leaves a wide margin for the sums over a mesh.
+MAX_COORDINATE = 1e30
+MIN_EXTENT = 1e-30
 HDF5_EXTENSIONS = (".h5", ".hdf5")
 SAVE_FORMATS = ("npz", "obj", "ply")
 
@@ -89,11 +96,15 @@ class MeshSequence:
             raise MeshseqError(f"{label}: faces must have shape (F, 3) with F >= 1, got {f.shape}")
         if not np.issubdtype(f.dtype, np.integer):
             raise MeshseqError(f"{label}: faces must be integers, got dtype {f.dtype}")
+        if v.dtype == np.bool_ or not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)):
+            raise MeshseqError(f"{label}: vertices must be real numbers (float or int), got dtype {v.dtype}")
         self.vertices = np.ascontiguousarray(v, dtype=np.float64)
         self.faces = np.ascontiguousarray(f, dtype=np.int64)
         if self.fps is not None:
             self.fps = float(self.fps)
         if self.vertex_map is not None:
+            if not np.issubdtype(np.asarray(self.vertex_map).dtype, np.integer):
+                raise MeshseqError(f"{label}: vertex_map must be integers, got dtype {np.asarray(self.vertex_map).dtype}")
             vm = np.ascontiguousarray(self.vertex_map, dtype=np.int64)
             if vm.shape != (v.shape[1],):
                 raise MeshseqError(f"{label}: vertex_map must have shape ({v.shape[1]},), got {vm.shape}")
@@ -152,6 +163,7 @@ def validate_sequence(vertices: np.ndarray, faces: np.ndarray, *, name: str, sou
         count = int((~finite[t]).sum())
         raise MeshseqError(f"{frame_label(int(t))}: non-finite (NaN/Inf) coordinates at vertex {int(i)} "
                            f"({count} vertices in this frame)")
+    _check_magnitudes(v, frame_label)
     lo, hi = int(f.min()), int(f.max())
     if lo < 0 or hi >= n_verts:
         bad = np.flatnonzero(((f < 0) | (f >= n_verts)).any(axis=1))[0]
@@ -183,6 +195,23 @@ def validate_sequence(vertices: np.ndarray, faces: np.ndarray, *, name: str, sou
     return seq
 
 
+def _check_magnitudes(v: np.ndarray, frame_label) -> None:
+    """MeshseqError naming the first frame whose coordinates are too large or whose extent is too
+    small to compute with (see MAX_COORDINATE); ``v`` is ``(T, V, 3)`` and finite."""
+    big = np.abs(v).max(axis=(1, 2)) > MAX_COORDINATE  # (T,)
+    if big.any():
+        t = int(np.flatnonzero(big)[0])
+        i = int(np.abs(v[t]).max(axis=1).argmax())
+        raise MeshseqError(f"{frame_label(t)}: coordinate {np.abs(v[t, i]).max():.3g} at vertex {i} is beyond "
+                           f"+-{MAX_COORDINATE:g}, too large to compute with; rescale the data")
+    extent = (v.max(axis=1) - v.min(axis=1)).max(axis=1)  # (T,) largest bounding-box side
+    small = (extent > 0) & (extent < MIN_EXTENT)
+    if small.any():
+        t = int(np.flatnonzero(small)[0])
+        raise MeshseqError(f"{frame_label(t)}: the mesh is only {extent[t]:.3g} across, too small to compute "
+                           f"with (at least {MIN_EXTENT:g}); rescale the data")
+
+
 # --------------------------------------------------------------------------------------------
 # Loading
 
@@ -209,6 +238,9 @@ def load_sequence(spec: str | os.PathLike | Sequence[str | os.PathLike], *,
         if not paths:
             raise MeshseqError("empty list of mesh files")
         for p in paths:
+            if is_sequence_spec(p):
+                raise MeshseqError(f"{p}: several DATA are the frames of one sequence, so each must be a mesh "
+                                   f"file ({', '.join(MESH_EXTENSIONS)}); give the sequence {p} on its own")
             _check_mesh_path(p)
         default = paths[0].parent.name or paths[0].stem
         return _load_frames(paths, name=name or default, source=", ".join(map(str, paths[:2]))
@@ -216,6 +248,8 @@ def load_sequence(spec: str | os.PathLike | Sequence[str | os.PathLike], *,
 
     text = os.fspath(spec)
     path = Path(text)
+    if path.exists() and not path.is_dir():
+        check_input_file(path)
     from meshseq import formats
 
     special = formats.load(text, name=name)  # glTF, MDD/PC2 caches, USD (files and addresses)
@@ -237,17 +271,39 @@ def load_sequence(spec: str | os.PathLike | Sequence[str | os.PathLike], *,
     return _load_frames([path], name=name or path.stem, source=str(path))
 
 
+def is_sequence_spec(spec: str | os.PathLike) -> bool:
+    """Whether ``spec`` names a whole sequence (folder, .npz, .h5, glTF, USD, point cache, or an
+    address such as ``file.h5:NAME``) rather than one mesh file (one frame)."""
+    from meshseq import formats
+
+    text = os.fspath(spec)
+    suffix = Path(text).suffix.lower()
+    return (Path(text).is_dir() or suffix in (".npz",) + HDF5_EXTENSIONS + formats.READ_EXTENSIONS
+            or formats.split_address(text) is not None
+            or (":" in text and Path(text.rsplit(":", 1)[0]).suffix.lower() in HDF5_EXTENSIONS))
+
+
 def natural_key(name: str) -> tuple:
     """Sort key putting ``frame2`` before ``frame10`` (digit runs compare as numbers)."""
     parts = re.split(r"(\d+)", name)
     return tuple(int(p) if i % 2 else p.casefold() for i, p in enumerate(parts)), name
 
 
-def _check_mesh_path(path: Path) -> None:
+def check_input_file(path: Path) -> None:
+    """MeshseqError unless ``path`` is an existing regular file (reading a FIFO or a device
+    would wait forever or never end)."""
     if not path.exists():
         raise MeshseqError(f"{path}: path does not exist")
     if path.is_dir():
+        raise MeshseqError(f"{path}: is a folder, expected a file")
+    if not path.is_file():
+        raise MeshseqError(f"{path}: not a regular file (a FIFO, socket or device); give a file")
+
+
+def _check_mesh_path(path: Path) -> None:
+    if path.is_dir():
         raise MeshseqError(f"{path}: is a folder, expected a mesh file")
+    check_input_file(path)
     if path.suffix.lower() not in MESH_EXTENSIONS:
         raise MeshseqError(f"{path}: unsupported extension {path.suffix!r} "
                            f"(mesh frames: {', '.join(MESH_EXTENSIONS)}; sequences: .npz, .h5:NAME, "
@@ -260,8 +316,7 @@ def _split_h5_address(text: str) -> tuple[str, str] | None:
     file_part, seq_name = text.rsplit(":", 1)
     if Path(file_part).suffix.lower() not in HDF5_EXTENSIONS:
         return None
-    if not Path(file_part).exists():
-        raise MeshseqError(f"{file_part}: path does not exist")
+    check_input_file(Path(file_part))
     return file_part, seq_name
 
 
@@ -327,10 +382,7 @@ def _load_npz(path: Path, *, name: str | None) -> MeshSequence:
         raise MeshseqError(f"{path}: 'faces' must have shape (F, 3), got {f.shape}")
     if not np.issubdtype(f.dtype, np.integer):
         raise MeshseqError(f"{path}: 'faces' must be integers, got dtype {f.dtype}")
-    fps = None
-    if "fps" in arrays and arrays["fps"].size == 1:
-        fps_value = float(arrays["fps"].reshape(()))
-        fps = fps_value if np.isfinite(fps_value) and fps_value > 0 else None
+    fps = _positive_number(arrays.get("fps"))
     stored_name = str(arrays["name"].reshape(())) if "name" in arrays and arrays["name"].size == 1 else None
     return validate_sequence(v, f, name=name or stored_name or path.stem, source=str(path), fps=fps,
                              vertex_map=arrays.get("vertex_map"))
@@ -340,35 +392,57 @@ def _load_h5(path: Path, seq_name: str | None, *, name: str | None) -> MeshSeque
     import h5py
 
     try:
-        handle = h5py.File(path, "r")
-    except Exception as exc:
-        raise MeshseqError(f"{path}: cannot read HDF5 ({_one_line(exc)})") from None
-    with handle:
-        names = sorted(k for k in handle.keys() if k != "faces" and isinstance(handle[k], h5py.Dataset))
-        few = ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
-        if seq_name is None or seq_name == "":
-            raise MeshseqError(f"{path}: name the sequence as {path}:NAME (available: {few or 'none'})")
-        address = f"{path}:{seq_name}"
-        if seq_name not in handle:
-            raise MeshseqError(f"{address}: no sequence {seq_name!r} in the file (available: {few or 'none'})")
-        if "faces" not in handle:
-            raise MeshseqError(f"{path}: no 'faces' dataset")
-        try:
-            raw = np.asarray(handle[seq_name][()])
-            faces = np.asarray(handle["faces"][()])
-            fps = handle[seq_name].attrs.get("fps", handle.attrs.get("fps"))
-        except Exception as exc:
-            raise MeshseqError(f"{address}: cannot read ({_one_line(exc)})") from None
+        with h5py.File(path, "r") as handle:
+            raw, faces, fps = _h5_arrays(handle, path, seq_name)
+    except MeshseqError:
+        raise
+    except Exception as exc:  # a damaged file fails anywhere in h5py (OSError, RuntimeError, KeyError...)
+        raise MeshseqError(f"{path}: cannot read HDF5 ({_one_line(exc)}); truncated or corrupt file?") from None
+    address = f"{path}:{seq_name}"
     if raw.ndim != 3 or raw.shape[1] != 3:
         raise MeshseqError(f"{address}: expected vertices stored as (V, 3, T), got {raw.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
         raise MeshseqError(f"{path}: 'faces' must be integers of shape (F, 3), got {faces.shape} {faces.dtype}")
-    fps = float(fps) if fps is not None and np.isscalar(fps) and np.isfinite(fps) and fps > 0 else None
     return validate_sequence(np.transpose(raw, (2, 0, 1)), faces, name=name or seq_name, source=address, fps=fps)
 
 
+def _h5_arrays(handle, path: Path, seq_name: str | None) -> tuple[np.ndarray, np.ndarray, float | None]:
+    """``(raw (V, 3, T), faces, fps)`` of sequence ``seq_name`` of an open Dyna-style HDF5 file."""
+    import h5py
+
+    names = sorted(k for k in handle.keys() if k != "faces" and isinstance(handle[k], h5py.Dataset))
+    few = ", ".join(names[:5]) + (f", ... ({len(names)} in all)" if len(names) > 5 else "")
+    if seq_name is None or seq_name == "":
+        raise MeshseqError(f"{path}: name the sequence as {path}:NAME (available: {few or 'none'})")
+    address = f"{path}:{seq_name}"
+    if seq_name not in handle:
+        raise MeshseqError(f"{address}: no sequence {seq_name!r} in the file (available: {few or 'none'})")
+    if not isinstance(handle[seq_name], h5py.Dataset):
+        raise MeshseqError(f"{address}: {seq_name!r} is an HDF5 group, not a sequence dataset "
+                           f"(available: {few or 'none'})")
+    if not isinstance(handle.get("faces"), h5py.Dataset):
+        raise MeshseqError(f"{path}: no 'faces' dataset")
+    raw = np.asarray(handle[seq_name][()])
+    faces = np.asarray(handle["faces"][()])
+    fps = _positive_number(handle[seq_name].attrs.get("fps", handle.attrs.get("fps")))
+    return raw, faces, fps
+
+
+def _positive_number(value) -> float | None:
+    """A stored optional scalar such as fps as a positive float; None if absent or not one."""
+    a = np.asarray(value) if value is not None else None
+    if a is None or a.size != 1 or a.dtype == np.bool_ or not np.issubdtype(a.dtype, np.number) \
+            or np.iscomplexobj(a):
+        return None
+    x = float(a.reshape(()))
+    return x if np.isfinite(x) and x > 0 else None
+
+
 def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
+    try:
+        text = " ".join(str(exc).split())
+    except Exception:  # some library exceptions cannot even be printed (undecodable bytes)
+        text = ""
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
@@ -417,6 +491,16 @@ _OBJ_F = re.compile(rb"^[ \t]*f[ \t]+([^\n]*)", re.M)
 _OBJ_SLASH = re.compile(rb"/[^\s]*")
 
 
+def _parse_ints(tokens: list[bytes], path: Path, what: str) -> np.ndarray:
+    try:
+        return np.array(tokens, dtype=np.int64)
+    except ValueError as exc:
+        raise MeshseqError(f"{path}: bad {what} ({_one_line(exc)})") from None
+    except OverflowError:
+        raise MeshseqError(f"{path}: {what} beyond 64-bit integers ({max(tokens, key=len)[:30].decode(errors='replace')}); "
+                           "corrupt file?") from None
+
+
 def _parse_floats(text: bytes, path: Path, what: str) -> np.ndarray:
     try:
         return np.array(text.split(), dtype=np.float64)
@@ -453,6 +537,8 @@ def _read_obj(data: bytes, path: Path) -> _Frame:
     else:  # some lines carry w or colours (or are broken): parse line by line
         vlines = vblock.split(b"\n")
         counts = np.fromiter(map(len, map(bytes.split, vlines)), dtype=np.int64, count=n_v) - 1
+        if counts.sum() != len(coords):
+            raise MeshseqError(f"{path}: a 'v' line holds a stray 'v' among its coordinates; corrupt file?")
         short = np.flatnonzero(counts < 3)
         if len(short):
             k = int(short[0])
@@ -467,10 +553,7 @@ def _read_obj(data: bytes, path: Path) -> _Frame:
         if n_f == 0:
             raise MeshseqError(f"{path}: no faces ('f' lines) in OBJ file")
         stripped = _OBJ_SLASH.sub(b"", face_text).replace(b"f", b" ")
-        try:
-            idx = np.array(stripped.split(), dtype=np.int64)
-        except ValueError as exc:
-            raise MeshseqError(f"{path}: bad face index ({_one_line(exc)})") from None
+        idx = _parse_ints(stripped.split(), path, "face index")
         if (idx == 0).any():
             raise MeshseqError(f"{path}: face index 0 (OBJ indices start at 1); truncated or corrupt file?")
         if len(idx) == 3 * n_f:
@@ -510,6 +593,8 @@ def _polygons_to_triangles(idx: np.ndarray, counts: np.ndarray | None, path: Pat
 def _read_off(data: bytes, path: Path) -> _Frame:
     lines = [ln.split(b"#", 1)[0].strip() for ln in data.split(b"\n")]
     lines = [ln for ln in lines if ln]
+    if not lines:
+        raise MeshseqError(f"{path}: not an OFF file (nothing but comments)")
     header = lines[0].split()
     if not header or not header[0].endswith(b"OFF"):
         raise MeshseqError(f"{path}: not an OFF file (first line {lines[0][:20]!r})")
@@ -525,6 +610,8 @@ def _read_off(data: bytes, path: Path) -> _Frame:
         n_v, n_f = int(rest[0]), int(rest[1])
     except (ValueError, IndexError):
         raise MeshseqError(f"{path}: bad OFF counts line {b' '.join(rest)[:40]!r}") from None
+    if n_v < 1 or n_f < 0:
+        raise MeshseqError(f"{path}: OFF header declares {n_v} vertices and {n_f} faces; corrupt file?")
     if len(body) < n_v + n_f:
         raise MeshseqError(f"{path}: OFF header promises {n_v} vertices and {n_f} faces but the file has "
                            f"only {len(body)} data lines; truncated file?")
@@ -546,11 +633,11 @@ def _read_off(data: bytes, path: Path) -> _Frame:
         if n_f == 0:
             raise MeshseqError(f"{path}: OFF file has no faces")
         rows = [ln.split() for ln in flines]
-        try:
-            sizes = np.array([int(r[0]) for r in rows], dtype=np.int64)
-            idx = np.array([x for r, k in zip(rows, sizes) for x in r[1:1 + k]], dtype=np.int64)
-        except ValueError as exc:
-            raise MeshseqError(f"{path}: bad face line ({_one_line(exc)})") from None
+        sizes = _parse_ints([r[0] for r in rows], path, "face size")
+        if (sizes < 3).any():
+            k = int(np.flatnonzero(sizes < 3)[0])
+            raise MeshseqError(f"{path}: face {k} has {int(sizes[k])} vertices, need at least 3; corrupt file?")
+        idx = _parse_ints([x for r, k in zip(rows, sizes) for x in r[1:1 + k]], path, "face index")
         if len(idx) != sizes.sum():
             raise MeshseqError(f"{path}: a face line lists fewer indices than its count; truncated file?")
         return _polygons_to_triangles(idx, None if (sizes == 3).all() else sizes, path)
@@ -558,27 +645,79 @@ def _read_off(data: bytes, path: Path) -> _Frame:
     return _Frame(vertices, face_text, parse_faces)
 
 
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _ply_header(data: bytes, path: Path) -> tuple[bytes, list[tuple[str, int, list[str]]], int]:
+    """``(format, elements, body_start)`` of a PLY file: elements as ``(name, count, property
+    types)`` in file order (a list property's type is ``"list"``); MeshseqError if malformed."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise MeshseqError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header)")
+    newline = data.find(b"\n", end)
+    body_start = len(data) if newline < 0 else newline + 1
+    fmt, elements = b"", []
+    for line in data[:end].split(b"\n")[1:]:
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == b"format" and len(words) > 1:
+            fmt = words[1]
+        elif words[0] == b"element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise MeshseqError(f"{path}: bad PLY header line {line.strip()[:40]!r}")
+            elements.append((words[1].decode(errors="replace"), int(words[2]), []))
+        elif words[0] == b"property" and elements:
+            if len(words) < 3:
+                raise MeshseqError(f"{path}: bad PLY header line {line.strip()[:40]!r}")
+            kind = "list" if words[1] == b"list" else words[1].decode(errors="replace")
+            elements[-1][2].append((kind, words[-1].decode(errors="replace")))
+    return fmt, elements, body_start
+
+
 def _read_ply(data: bytes, path: Path) -> _Frame:
     import io as _io
 
     import trimesh
 
-    header_end = data.find(b"end_header")
-    if not data.startswith(b"ply") or header_end < 0:
-        raise MeshseqError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header)")
-    m = re.search(rb"element\s+face\s+(\d+)", data[:header_end])
-    declared_faces = int(m.group(1)) if m else 0
+    fmt, elements, body_start = _ply_header(data, path)
+    counts = {name: count for name, count, _ in elements}
+    declared_vertices, declared_faces = counts.get("vertex", 0), counts.get("face", 0)
+    if "vertex" not in counts:
+        raise MeshseqError(f"{path}: no 'element vertex' in the PLY header")
+    vertex_props = next(props for name, _, props in elements if name == "vertex")
+    names = [n for _, n in vertex_props]
+    missing = [axis for axis in "xyz" if axis not in names]
+    if missing:
+        raise MeshseqError(f"{path}: PLY vertices have no {', '.join(missing)} propert{'ies' if len(missing) > 1 else 'y'} "
+                           f"(they have {', '.join(names) or 'none'})")
+    body = data[body_start:]
+    if fmt == b"ascii":
+        available = len(body.split())  # numbers: a vertex takes one per property
+        needed = declared_vertices * len(vertex_props)
+    elif elements[0][0] == "vertex" and all(t in _PLY_SIZES for t, _ in vertex_props):
+        available = len(body)
+        needed = declared_vertices * sum(_PLY_SIZES[t] for t, _ in vertex_props)
+    else:
+        available = needed = 0  # no simple size to check (lists in the vertices, or elements first)
+    if available < needed:
+        raise MeshseqError(f"{path}: header declares {declared_vertices} vertices but the file holds too little "
+                           f"data for them; truncated file?")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             mesh = trimesh.load(_io.BytesIO(data), file_type="ply", process=False, maintain_order=True,
                                 force="mesh")
+        vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
+        faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
     except Exception as exc:
         raise MeshseqError(f"{path}: cannot read PLY ({_one_line(exc)}); truncated or corrupt file?") from None
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
     if len(vertices) == 0:
         raise MeshseqError(f"{path}: no vertices in PLY file")
+    if len(vertices) < declared_vertices:
+        raise MeshseqError(f"{path}: header declares {declared_vertices} vertices, read {len(vertices)}; "
+                           "truncated or corrupt file?")
     if declared_faces and len(faces) < declared_faces:
         raise MeshseqError(f"{path}: header declares {declared_faces} faces, read {len(faces)}; "
                            "truncated or corrupt file?")
@@ -620,7 +759,10 @@ def atomic_output(path: str | os.PathLike, *, force: bool = False) -> Iterator[P
     """
     target = Path(path)
     _refuse_existing(target, force)
-    target.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise MeshseqError(f"{target}: cannot create its folder ({exc.strerror or _one_line(exc)})") from None
     token = secrets.token_hex(4)
     tmp = target.parent / f".tmp-{token}-{target.name}"
     try:
@@ -654,7 +796,28 @@ def check_output(path: str | os.PathLike, *, force: bool = False) -> Path:
     _refuse_existing(target, force)
     if target.suffix.lower() in (".mdd", ".pc2"):  # a point cache comes with its base mesh
         _refuse_existing(target.with_suffix(".obj"), force)
+    check_writable(target, target.parent)
     return target
+
+
+def check_writable(target: str | os.PathLike, folder: str | os.PathLike) -> None:
+    """MeshseqError naming ``target`` unless files can be created in ``folder`` (or, where it
+    does not exist yet, in its nearest existing ancestor, below which it would be created).
+
+    Refuses a path through a file (``-o notes.txt/out.npz``), a read-only folder or file system
+    and /proc, before any work starts: it creates and removes an empty temporary file there.
+    """
+    probe = Path(os.path.abspath(folder))
+    while not os.path.lexists(probe) and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise MeshseqError(f"{target}: cannot write there, {probe} is a file, not a folder")
+    try:
+        fd, name = tempfile.mkstemp(prefix=".tmp-probe-", dir=probe)
+    except OSError as exc:
+        raise MeshseqError(f"{target}: cannot write in {probe} ({exc.strerror or _one_line(exc)})") from None
+    os.close(fd)
+    os.remove(name)
 
 
 def _refuse_existing(target: Path, force: bool) -> None:
@@ -669,6 +832,32 @@ def _remove(path: Path) -> None:
     elif os.path.lexists(path):
         with contextlib.suppress(OSError):
             os.remove(path)
+
+
+def json_text(obj, *, indent: int | None = 2) -> str:
+    """Strict JSON text of ``obj`` for everything meshseq prints or writes as JSON.
+
+    NaN and +-inf (which ``json.dumps`` writes as the invalid tokens ``NaN``/``Infinity``) become
+    ``null``; numpy scalars and arrays become numbers and lists.
+    """
+    import json
+
+    def clean(x):
+        if isinstance(x, dict):
+            return {str(k): clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if isinstance(x, np.ndarray):
+            return clean(x.tolist())
+        if isinstance(x, (bool, np.bool_)):
+            return bool(x)
+        if isinstance(x, np.integer):
+            return int(x)
+        if isinstance(x, (float, np.floating)):
+            return float(x) if np.isfinite(x) else None
+        return x
+
+    return json.dumps(clean(obj), indent=indent, allow_nan=False)
 
 
 # --------------------------------------------------------------------------------------------

@@ -55,6 +55,9 @@ from meshseq.mesh import Topology
 
 VARIANTS = ("bd", "std-bd", "uni")
 CONV_IMPLS = ("gather", "sparse")
+#: the command-line options of ModelConfig fields (``meshseq train``), named in messages about them
+MODEL_OPTIONS = {"variant": "--variant", "conv_impl": "--conv", "latent": "--latent",
+                 "lstm_layers": "--lstm-layers", "conv_layers": "--conv-layers"}
 
 
 @dataclass
@@ -87,28 +90,73 @@ class ModelConfig:
     input_norm: bool = False
 
     def __post_init__(self):
-        if self.variant not in VARIANTS:
-            raise MeshseqError(f"--variant {self.variant!r}: expected one of {', '.join(VARIANTS)}")
-        if self.conv_impl not in CONV_IMPLS:
-            raise MeshseqError(f"--conv {self.conv_impl!r}: expected one of {', '.join(CONV_IMPLS)}")
-        for name in ("n_vertices", "channels", "conv_layers", "latent", "lstm_layers"):
-            if int(getattr(self, name)) < 1:
-                raise MeshseqError(f"model option {name}={getattr(self, name)} must be at least 1")
+        ModelConfig.check_options(self.__dict__)
         if self.step_scale is not None:
             self.step_scale = [float(v) for v in self.step_scale]
-            if len(self.step_scale) != self.channels or not all(v > 0 for v in self.step_scale):
-                raise MeshseqError(f"model option step_scale: expected {self.channels} positive numbers")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @staticmethod
-    def from_dict(d: dict) -> "ModelConfig":
+    def check_options(options: dict) -> None:
+        """MeshseqError (naming the command-line option) unless ``options`` (fields; ``n_vertices``
+        may be left out) make a valid config; for checking before any work starts."""
+        known = {f.name for f in fields(ModelConfig)}
+        unknown = set(options) - known
+        if unknown:
+            raise MeshseqError(f"unknown model options {sorted(unknown)}")
+        defaults = {f.name: f.default for f in fields(ModelConfig)}
+        problem = _model_config_problem({**defaults, "n_vertices": 1, **options})
+        if problem:
+            field, value, expected = problem
+            raise MeshseqError(f"{MODEL_OPTIONS.get(field, 'model option ' + field)} {value!r}: {expected}")
+
+    @staticmethod
+    def from_dict(d: dict, source: str = "stored model config") -> "ModelConfig":
+        """The config stored by :meth:`to_dict` (a checkpoint's ``model``). Its problems are
+        reported as stored fields of ``source`` (``source: model.variant ...``), not as
+        command-line options nobody gave."""
+        if not isinstance(d, dict):
+            raise MeshseqError(f"{source}: model config must be a JSON object, got {type(d).__name__}")
         known = {f.name for f in fields(ModelConfig)}
         unknown = set(d) - known
         if unknown:
-            raise MeshseqError(f"model config has unknown keys {sorted(unknown)} (newer meshseq?)")
+            raise MeshseqError(f"{source}: model config has unknown keys {sorted(unknown)} (newer meshseq?)")
+        if "n_vertices" not in d:
+            raise MeshseqError(f"{source}: model config has no n_vertices")
+        defaults = {f.name: f.default for f in fields(ModelConfig) if f.name != "n_vertices"}
+        problem = _model_config_problem({**defaults, **d})
+        if problem:
+            field, value, expected = problem
+            raise MeshseqError(f"{source}: stored field model.{field} = {value!r}: {expected}")
         return ModelConfig(**d)
+
+
+def _model_config_problem(values: dict) -> tuple[str, object, str] | None:
+    """``(field, value, what was expected)`` of the first invalid ModelConfig field; None if valid."""
+    def is_int(x):
+        return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+    if values["variant"] not in VARIANTS:
+        return "variant", values["variant"], f"expected one of {', '.join(VARIANTS)}"
+    if values["conv_impl"] not in CONV_IMPLS:
+        return "conv_impl", values["conv_impl"], f"expected one of {', '.join(CONV_IMPLS)}"
+    for name in ("n_vertices", "channels", "conv_layers", "latent", "lstm_layers"):
+        if not is_int(values[name]) or values[name] < 1:
+            return name, values[name], "expected an integer of at least 1"
+    if not isinstance(values["init_state"], (int, float, np.floating)) or not math.isfinite(values["init_state"]):
+        return "init_state", values["init_state"], "expected a number"
+    if not isinstance(values["input_norm"], (bool, np.bool_)):
+        return "input_norm", values["input_norm"], "expected true or false"
+    scale = values["step_scale"]
+    if scale is not None:
+        try:
+            a = np.asarray(scale, dtype=np.float64)
+        except (TypeError, ValueError):
+            a = np.zeros(0)
+        if a.shape != (values["channels"],) or not (np.isfinite(a) & (a > 0)).all():
+            return "step_scale", scale, f"expected {values['channels']} positive numbers"
+    return None
 
 
 # --------------------------------------------------------------------------------------------

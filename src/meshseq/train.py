@@ -51,7 +51,7 @@ import torch
 from torch import nn
 
 from meshseq import checkpoint as ckpt
-from meshseq.data.windows import Split, WindowSampler, heldout_rows, split_frames
+from meshseq.data.windows import Split, WindowSampler, check_holdout, heldout_rows, split_frames
 from meshseq.errors import MeshseqError
 from meshseq.kernels import keep_freed_memory
 from meshseq.mesh import Topology, topology_hash
@@ -96,6 +96,9 @@ class TrainConfig:
         for name in ("iterations", "window", "batch", "stride"):
             if int(getattr(self, name)) < 1:
                 raise MeshseqError(f"--{name} {getattr(self, name)}: expected a positive integer")
+        if int(self.window) < 2:
+            raise MeshseqError(f"--window {self.window}: a window needs at least 2 frames")
+        check_holdout(self.holdout, self.holdout_at)
         for name in ("eval_every", "checkpoint_every", "log_every"):
             if int(getattr(self, name)) < 0:
                 raise MeshseqError(f"--{name.replace('_', '-')} {getattr(self, name)}: expected >= 0")
@@ -493,6 +496,7 @@ def train(
     if dev.type == "cpu":
         keep_freed_memory()  # reuse freed step-sized blocks instead of page-faulting fresh ones
     log = log if (is_main and log) else (lambda msg: None)
+    ModelConfig.check_options(model_options or {})  # before the run folder is created
     if resume and force:
         raise MeshseqError("--resume and --force: choose one (--resume continues RUN, --force starts it over)")
     found = resume_point(run_dir) if resume else None

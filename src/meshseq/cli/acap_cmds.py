@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numpy as np
 
 from meshseq.errors import MeshseqError
+from meshseq.io import json_text
 
 
 def register(sub) -> None:
@@ -16,7 +16,10 @@ def register(sub) -> None:
     p = sub.add_parser("info", help="describe a mesh sequence (frames, vertices, faces, size, defects)",
                        description="Print frames, vertices, faces, bounding-box diagonal, connected "
                        "components, boundary / non-manifold edges and degenerate triangles of DATA.")
-    p.add_argument("data", metavar="DATA", nargs="+", help="the sequence (see `meshseq --help`)")
+    p.add_argument("data", metavar="DATA", nargs="+",
+                   help="the sequence (see `meshseq --help`; several mesh files are the frames of one "
+                   "sequence), or several sequences (folders, .npz, ...): each is described, and --json "
+                   "prints a list")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.add_argument("--no-jumps", dest="jumps", action="store_false",
                    help="skip the feature check (extracting the default ACAP features against frame 0 "
@@ -75,6 +78,9 @@ def _reference(seq, k: int) -> np.ndarray:
     if not -seq.n_frames <= k < seq.n_frames:
         raise MeshseqError(f"--reference-frame {k} is out of range: {seq.source or seq.name} has "
                            f"{seq.n_frames} frames")
+    if not np.ptp(seq.vertices[k], axis=0).any():
+        raise MeshseqError(f"{seq.source or seq.name} frame {k % seq.n_frames}: all vertices are at one point; "
+                           "ACAP features need a reference frame of non-zero size (--reference-frame)")
     return seq.vertices[k]
 
 
@@ -99,16 +105,37 @@ def describe(seq) -> dict:
     }
 
 
-def cmd_info(args) -> int:
-    seq = _load(args)
-    info = describe(seq)
-    if args.jumps:
-        from meshseq.acap import extract
-        from meshseq.acap.diagnostics import feature_jumps
+def _sequences(args) -> list:
+    """DATA of ``info``: several mesh files are the frames of one sequence; several whole
+    sequences (folders, .npz, FILE.h5:NAME, ...) are one sequence each."""
+    from meshseq.io import is_sequence_spec, load_sequence
 
-        info["jump_check_consistency"] = "temporal"
-        info.update(feature_jumps(extract(seq.vertices, seq.faces)))
-    _print(info, args.json, "info")
+    whole = [d for d in args.data if is_sequence_spec(d)]
+    if len(args.data) == 1 or not whole:
+        return [_load(args)]
+    frames = [d for d in args.data if not is_sequence_spec(d)]
+    if frames:
+        raise MeshseqError(f"{frames[0]}: DATA mixes mesh files (the frames of one sequence) with whole "
+                           f"sequences ({whole[0]}); give one or the other")
+    return [load_sequence(d) for d in whole]
+
+
+def cmd_info(args) -> int:
+    infos = []
+    for seq in _sequences(args):
+        info = describe(seq)
+        if args.jumps:
+            from meshseq.acap import extract
+            from meshseq.acap.diagnostics import feature_jumps
+
+            info["jump_check_consistency"] = "temporal"
+            info.update(feature_jumps(extract(seq.vertices, seq.faces)))
+        infos.append(info)
+    if args.json and len(infos) > 1:
+        print(json_text(infos))
+    else:
+        for info in infos:
+            _print(info, args.json, "info" if len(infos) == 1 else f"info: {info['source']}")
     return 0
 
 
@@ -145,9 +172,9 @@ def cmd_features(args) -> int:
 
     jumps = feature_jumps(feats)
     if args.json:
-        print(json.dumps({"output": str(out), "frames": int(feats.shape[0]), "vertices": int(feats.shape[1]),
-                          "consistency": args.consistency, "exact": bool(args.exact),
-                          "reference_frame": args.reference_frame, **jumps}, indent=2))
+        print(json_text({"output": str(out), "frames": int(feats.shape[0]), "vertices": int(feats.shape[1]),
+                         "consistency": args.consistency, "exact": bool(args.exact),
+                         "reference_frame": args.reference_frame, **jumps}))
     else:
         print(f"wrote {out}: features {feats.shape} ({args.consistency} consistency"
               f"{', exact' if args.exact else ''}); {jumps['spurious_jumps']} spurious 2 pi jumps in time "
@@ -176,7 +203,8 @@ def roundtrip_report(seq, *, consistency="temporal", exact=False, reference_fram
     out = recon.solve(feats, offsets=offsets, target=v)
     t_solve = time.perf_counter() - t0
     diag = bounding_box_diagonal(v)
-    err = per_vertex_error(out, v) / diag
+    scale = 1.0 / diag if diag > 0 else np.nan  # a mesh of zero size has no relative error (JSON null)
+    err = per_vertex_error(out, v) * scale
     report = {
         "name": seq.name,
         "frames": seq.n_frames,
@@ -191,7 +219,7 @@ def roundtrip_report(seq, *, consistency="temporal", exact=False, reference_fram
         "factor_seconds": t_factor,
     }
     if rigid:
-        report["mean_error_rel_rigid"] = float((per_vertex_error(out, v, rigid=True) / diag).mean())
+        report["mean_error_rel_rigid"] = float((per_vertex_error(out, v, rigid=True) * scale).mean())
     if exact:
         plain = extract(v, seq.faces, reference=ref, consistency=consistency, normal_row=normal_row)
         g_plain, g_exact = features_to_gradients(plain), features_to_gradients(feats)
@@ -213,7 +241,7 @@ def cmd_roundtrip(args) -> int:
 
 def _print(values: dict, as_json: bool, title: str) -> None:
     if as_json:
-        print(json.dumps(values, indent=2))
+        print(json_text(values))
         return
     from rich.console import Console
     from rich.table import Table

@@ -215,7 +215,7 @@ def _recorded_heldout(model, seq) -> tuple[int, int] | None:
 
 def cmd_complete(args) -> int:
     from meshseq import baselines, synthesize
-    from meshseq.io import MeshSequence, atomic_output, check_output, save_sequence
+    from meshseq.io import MeshSequence, atomic_output, check_output, json_text, save_sequence
 
     check_output(args.output, force=args.force)
     keys = _int_list(args.keyframes, "--keyframes")
@@ -251,16 +251,16 @@ def cmd_complete(args) -> int:
             name = f"sample_{s:02d}" + (".npz" if fmt == "npz" else "")
             save_sequence(MeshSequence(verts, seq.faces, name=f"{seq.name}_sample{s}", fps=seq.fps),
                           tmp / name, format=fmt)
-        (tmp / "diversity.json").write_text(json.dumps(
+        (tmp / "diversity.json").write_text(json_text(
             {"samples": args.samples, "seed": args.seed, "keyframes": keys,
-             "mean_pairwise_vertex_distance": diversity, "units": "data units"}, indent=2))
+             "mean_pairwise_vertex_distance": diversity, "units": "data units"}))
     print(f"wrote {args.samples} completions and diversity.json (mean pairwise distance {diversity:.4g})")
     return 0
 
 
 def cmd_evaluate(args) -> int:
     from meshseq import baselines, evaluate
-    from meshseq.io import atomic_output, check_output
+    from meshseq.io import atomic_output, check_output, json_text
     from meshseq.mesh import bounding_box_diagonal
 
     if args.json_out:
@@ -316,7 +316,7 @@ def cmd_evaluate(args) -> int:
     _print_tables(result, horizons)
     if args.json_out:
         with atomic_output(args.json_out, force=args.force) as tmp:
-            Path(tmp).write_text(json.dumps(result, indent=2))
+            Path(tmp).write_text(json_text(result))
         print(f"wrote {args.json_out}")
     if args.plots:
         _plots(result, args.plots, args.force)

@@ -84,6 +84,8 @@ def register(sub) -> None:
 
 def _train(args) -> int:
     from meshseq.errors import MeshseqError
+    from meshseq.io import check_writable
+    from meshseq.model import ModelConfig
     from meshseq.train import TrainConfig, load_training_data, train
 
     out = Path(args.out)
@@ -92,6 +94,7 @@ def _train(args) -> int:
     if out.is_dir() and any(out.iterdir()) and not (args.resume or args.force):
         raise MeshseqError(f"--out {out}: already exists and is not empty (use --resume to continue it "
                            "or --force to start over)")
+    check_writable(f"--out {out}", out)
     from meshseq.train import RECIPE_OPTIONS, RECIPES
 
     recipe = dict(RECIPES[args.recipe])
@@ -117,14 +120,23 @@ def _train(args) -> int:
         torch.set_num_threads(args.threads)
     model_options = {"variant": args.variant, "latent": args.latent, "lstm_layers": args.lstm_layers,
                      "conv_layers": args.conv_layers, "conv_impl": args.conv}
+    ModelConfig.check_options(model_options)  # every option is checked before the data is loaded
     consistency = args.consistency
     if args.resume and not args.force:  # features as the run was trained on (its stored options)
         from meshseq.train import resume_point
 
         consistency = resume_point(out).meta["train"]["consistency"]
     data = load_training_data(args.data, consistency=consistency)
-    result = train(data, out, config, model_options, device=args.device, resume=args.resume, force=args.force,
-                   progress=not args.no_progress)
+    created = not out.exists()
+    try:
+        result = train(data, out, config, model_options, device=args.device, resume=args.resume,
+                       force=args.force, progress=not args.no_progress)
+    except MeshseqError:
+        # an error that needs the data (e.g. --window longer than it) is found after train()
+        # created RUN: leave no empty folder behind
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
     if result.get("checkpoint") and (not _dist_rank()):
         held = result.get("heldout_rec")
         print(f"trained to iteration {result['iteration']}: loss {result['loss']}"

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from meshseq.errors import MeshseqError
+from meshseq.io import check_output
 
 SEQ_HELP = ("a mesh sequence: folder of OBJ/PLY/OFF frames, .npz, FILE.h5:SEQUENCE, .glb/.gltf, "
             ".usd/.usda/.usdc, or an .mdd/.pc2 point cache (BASE.obj:CACHE.pc2)")
@@ -95,12 +96,6 @@ def _load(spec: str):
     return load_sequence(spec)
 
 
-def _refuse_existing(path: str, force: bool) -> None:
-    """Fail fast (before loading or rendering anything) when the output exists without --force."""
-    if os.path.lexists(path) and not force:
-        raise MeshseqError(f"{path}: output exists; use --force to overwrite it")
-
-
 def _frame_slice(text: str | None) -> slice | None:
     """``"START:STOP"`` (either may be empty) -> a slice; None -> None."""
     if text is None:
@@ -126,7 +121,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from meshseq import render
 
     suffix = render.check_output_suffix(args.output, render.IMAGE_SUFFIXES + render.ANIMATION_SUFFIXES)
-    _refuse_existing(args.output, args.force)
+    check_output(args.output, force=args.force)  # before loading or rendering anything
     if args.every is not None and args.every < 1:
         raise MeshseqError(f"--every {args.every}: must be at least 1")
     if args.height is not None and not 16 <= args.height <= 2048:
@@ -190,9 +185,7 @@ def cmd_export(args: argparse.Namespace) -> int:
                            f"{', '.join(EXPORT_SUFFIXES)} or a folder path")
     if args.format is not None and not is_folder:
         raise MeshseqError(f"--format {args.format}: only for a folder output, not {out}")
-    _refuse_existing(out.rstrip("/" + os.sep) or out, args.force)
-    if suffix in (".mdd", ".pc2"):
-        _refuse_existing(str(Path(out).with_suffix(".obj")), args.force)  # the base mesh written beside it
+    check_output(out.rstrip("/" + os.sep) or out, force=args.force)  # with a cache's base mesh beside it
     if suffix in (".usd", ".usda", ".usdc"):
         from meshseq.formats.usd import _pxr
 

@@ -8,6 +8,8 @@ segment; every such window of every data set is equally likely.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,26 +37,35 @@ class Split:
         return np.concatenate([np.arange(a, b) for a, b in self.train] or [np.zeros(0, np.int64)])
 
 
+def check_holdout(holdout: float, at: str | float) -> float | None:
+    """MeshseqError unless ``holdout`` is a fraction in [0, 1) and ``at`` is ``"start"``,
+    ``"end"`` or a fraction in [0, 1]; returns ``at`` as a number (None for start/end)."""
+    if not isinstance(holdout, (int, float)) or not 0.0 <= holdout < 1.0:
+        raise MeshseqError(f"--holdout {holdout}: expected a fraction in [0, 1)")
+    if at in ("start", "end"):
+        return None
+    try:
+        frac = float(at)
+    except (TypeError, ValueError):
+        frac = math.nan
+    if not 0.0 <= frac <= 1.0:
+        raise MeshseqError(f"--holdout-at {at!r}: expected 'start', 'end' or a fraction in [0, 1]")
+    return frac
+
+
 def split_frames(n_frames: int, holdout: float = 0.2, at: str | float = "end") -> Split:
     """One contiguous held-out block of ``round(holdout * n_frames)`` frames.
 
     ``at``: ``"end"`` (default), ``"start"``, or a fraction in [0, 1] of the sequence where the
     block starts (clipped so that it fits). ``holdout = 0`` holds nothing out.
     """
-    if not 0.0 <= holdout < 1.0:
-        raise MeshseqError(f"--holdout {holdout}: expected a fraction in [0, 1)")
+    frac = check_holdout(holdout, at)
     n_hold = int(round(holdout * n_frames))
     if at == "end":
         start = n_frames - n_hold
     elif at == "start":
         start = 0
     else:
-        try:
-            frac = float(at)
-        except ValueError:
-            raise MeshseqError(f"--holdout-at {at!r}: expected 'start', 'end' or a fraction in [0, 1]") from None
-        if not 0.0 <= frac <= 1.0:
-            raise MeshseqError(f"--holdout-at {at!r}: expected 'start', 'end' or a fraction in [0, 1]")
         start = min(int(round(frac * n_frames)), n_frames - n_hold)
     stop = start + n_hold
     train = tuple((a, b) for a, b in ((0, start), (stop, n_frames)) if b > a)

@@ -78,8 +78,9 @@ def load(text: str, *, name: str | None = None):
     if split is None:
         return None
     kind, file, extra = split
-    if not Path(file).exists():
-        raise MeshseqError(f"{file}: path does not exist")
+    from meshseq.io import check_input_file
+
+    check_input_file(Path(file))
     if kind == "cache":
         return load_cache(Path(file), Path(extra), name=name)
     if Path(file).suffix.lower() in GLTF_EXTENSIONS:

@@ -54,6 +54,8 @@ class _Buffers:
                     raise MeshseqError(f"{self.path}: buffer {index} has a bad data URI") from None
             else:
                 file = self.path.parent / buf.uri
+                if not file.is_file():
+                    raise MeshseqError(f"{self.path}: buffer {index} refers to {file}, which is not a file")
                 try:
                     data = file.read_bytes()
                 except OSError:
@@ -106,6 +108,8 @@ def _accessor(doc, buffers: _Buffers, index: int, path: Path) -> np.ndarray:
         out[idx.astype(np.int64)] = vals
     if acc.normalized:
         raise MeshseqError(f"{path}: accessor {index} is normalized (quantized); not supported")
+    if out.dtype.kind == "f" and not np.isfinite(out).all():
+        raise MeshseqError(f"{path}: accessor {index} holds NaN or infinite values; corrupt file?")
     return out[:, 0] if acc.type == "SCALAR" else out
 
 
@@ -156,7 +160,7 @@ def load_gltf(path: Path, mesh_name: str | None, *, name: str | None):
     """
     import pygltflib
 
-    from meshseq.io import _one_line, _polygons_to_triangles, validate_sequence
+    from meshseq.io import _one_line
 
     try:
         with warnings.catch_warnings():
@@ -166,6 +170,17 @@ def load_gltf(path: Path, mesh_name: str | None, *, name: str | None):
         raise MeshseqError(f"{path}: cannot read glTF ({_one_line(exc)})") from None
     if doc is None:
         raise MeshseqError(f"{path}: cannot read glTF (not a glTF/GLB file?)")
+    try:
+        return _read_document(doc, path, mesh_name, name)
+    except (TypeError, ValueError, IndexError, KeyError, AttributeError) as exc:
+        # a field of the wrong type or a missing one (pygltflib does not check the document)
+        raise MeshseqError(f"{path}: malformed glTF document ({_one_line(exc)})") from None
+
+
+def _read_document(doc, path: Path, mesh_name: str | None, name: str | None):
+    """The sequence of a parsed glTF document (see :func:`load_gltf`)."""
+    from meshseq.io import _polygons_to_triangles, validate_sequence
+
     meshes = doc.meshes or []
     morphed = [i for i, m in enumerate(meshes) if m.primitives and all(p.targets for p in m.primitives)]
     label = f"{path}:{mesh_name}" if mesh_name else str(path)
@@ -250,9 +265,10 @@ def load_gltf(path: Path, mesh_name: str | None, *, name: str | None):
     if fps is None and len(times) > 1:
         warnings.warn(f"{label}: animation keys are not evenly spaced; the frames are its {len(times)} "
                       "keys and the frame rate is unknown", MeshseqWarning, stacklevel=3)
-    weights = _sample_weights(times, values, interp, grid)  # (T, K)
     n_verts = len(base)
-    vertices = base[None] + (weights @ target.reshape(n_targets, -1)).reshape(len(grid), n_verts, 3)
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow -> inf, named by validate_sequence
+        weights = _sample_weights(times, values, interp, grid)  # (T, K)
+        vertices = base[None] + (weights @ target.reshape(n_targets, -1)).reshape(len(grid), n_verts, 3)
 
     # merge vertices that the exporter split but that coincide in every frame (meshseq's own
     # files are written unsplit: they are read as they are, duplicates in the data included)

@@ -41,7 +41,7 @@ def load_usd(path: Path, prim_path: str | None, *, name: str | None):
 
     Returns a validated :class:`meshseq.io.MeshSequence` (vertices ``(T, V, 3)``, faces ``(F, 3)``).
     """
-    from meshseq.io import _one_line, _polygons_to_triangles, validate_sequence
+    from meshseq.io import _one_line
 
     Sdf, Usd, UsdGeom, _ = _pxr()
     label = f"{path}:{prim_path}" if prim_path else str(path)
@@ -54,6 +54,21 @@ def load_usd(path: Path, prim_path: str | None, *, name: str | None):
         raise MeshseqError(f"{path}: cannot open USD stage ({_one_line(exc)})") from None
     if stage is None:
         raise MeshseqError(f"{path}: cannot open USD stage")
+    from pxr import Tf
+
+    try:
+        return _read_stage(stage, path, prim_path, name)
+    except (TypeError, ValueError, IndexError, KeyError, AttributeError, Tf.ErrorException) as exc:
+        # an attribute of the wrong type or shape in a hand-edited or damaged stage
+        raise MeshseqError(f"{label}: malformed USD stage ({_one_line(exc)})") from None
+
+
+def _read_stage(stage, path: Path, prim_path: str | None, name: str | None):
+    """The sequence of an open stage (see :func:`load_usd`)."""
+    from meshseq.io import _polygons_to_triangles, validate_sequence
+
+    Sdf, Usd, UsdGeom, _ = _pxr()
+    label = f"{path}:{prim_path}" if prim_path else str(path)
     meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
     if prim_path:
         valid = prim_path.startswith("/") and Sdf.Path.IsValidPathString(prim_path)
