@@ -75,12 +75,20 @@ def train_run(specs: list[str], name: str, run: Path, variant: str, args) -> dic
 
     model_opts, weights = VARIANTS[variant]
     options = {**RECIPES[args.recipe], **weights}
-    config = TrainConfig(iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride,
+    if args.lr is not None:
+        options["lr"] = args.lr
+    data = load_training_data(specs)
+    holdout = HOLDOUT.get(name, 0.2)
+    # a sequence shorter than a window plus its held-out part (horse-gallop: 48 frames, 29 for
+    # training) trains on windows as long as its training part
+    shortest = min(len(f) - int(round(holdout * len(f))) for f in data.features) // args.stride
+    window = min(args.window, shortest)
+    config = TrainConfig(iterations=args.iterations, window=window, batch=args.batch, stride=args.stride,
                          seed=args.seed, checkpoint_every=max(50, args.iterations // 4), eval_every=0,
-                         holdout=HOLDOUT.get(name, 0.2), **options)
-    out = train(load_training_data(specs), run, config, model_options=dict(model_opts, latent=args.latent),
+                         holdout=holdout, **options)
+    out = train(data, run, config, model_options=dict(model_opts, latent=args.latent),
                 device=args.device, resume=bool(list_checkpoints(run)), progress=not args.quiet)
-    return {"seconds": training_seconds(run), "iteration": out["iteration"], "loss": out["loss"]}
+    return {"seconds": training_seconds(run), "iteration": out["iteration"], "loss": out["loss"], "window": window}
 
 
 def training_seconds(run: Path) -> float:
@@ -196,7 +204,8 @@ def write_markdown(summaries: dict, device: str, path: Path) -> None:
         lines += [f"## {name}", "",
                   f"Command: `python benchmarks/paper.py {' '.join(summ['argv'])}`. Recipe: "
                   f"{summ.get('recipe', 'default')}. Iterations: {its}; "
-                  f"{cfg['batch']} windows x {cfg['window']} frames, stride {cfg['stride']}, latent {cfg['latent']}; "
+                  f"{cfg['batch']} windows x {runs[next(iter(runs))].get('window', cfg['window'])} frames, "
+                  f"stride {cfg['stride']}, latent {cfg['latent']}; "
                   f"held-out frames {per_variant[next(iter(per_variant))]['range']}"
                   + (f" of each of its {len(seqs)} sequences ({', '.join(seqs)})" if seqs else "") + ".", ""]
         bd = per_variant.get("bd")
@@ -252,6 +261,7 @@ def main() -> None:
     ap.add_argument("--variants", default="bd,std-bd,uni,no-kl")
     ap.add_argument("--recipe", default="default", help="training recipe (meshseq.train.RECIPES): default or paper")
     ap.add_argument("--iterations", type=int, default=500)
+    ap.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: the recipe's, 1e-3)")
     ap.add_argument("--window", type=int, default=32)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--stride", type=int, default=1)

@@ -219,3 +219,58 @@ def test_cli_recipe_sets_the_options_and_flags_override(tmp_path):
     train_opts, model_opts = stored(tmp_path / "o")
     assert train_opts["w_l2"] == 0.5 and train_opts["given"] == 2 and model_opts["input_norm"] is True
     assert train_opts["w_kl"] == 0.1  # the rest from the paper's recipe
+
+
+def test_fc_learning_rate_scales_with_the_fan_in(monkeypatch):
+    """fc_lr="fan-in": the FC weight's Adam rate is lr * min(1, 9000 / (V * 9)); every other
+    parameter keeps lr; "none" (the paper) is one group."""
+    import meshseq.train as T
+
+    seq, _ = limb()
+    net = small_model(seq)
+    fan_in = net.fc.weight.shape[1]  # vertices x 9, under the reference 9000
+    cfg = TrainConfig(lr=2e-3)
+    assert fan_in == seq.n_vertices * 9 < 9000 and T.fc_lr_factor(fan_in, "fan-in") == 1.0 and T.fc_lr_factor(90000, "fan-in") == pytest.approx(0.1)
+    assert T.fc_lr_factor(90000, "none") == 1.0
+    [one] = T.parameter_groups(net, cfg)  # below the reference: one rate
+    assert one["names"] == [n for n, _ in net.named_parameters()] and "lr" not in one
+    monkeypatch.setattr(T, "FC_REFERENCE_FAN_IN", fan_in // 4)  # as if the mesh were 4x the reference
+    rest, fc = T.parameter_groups(net, cfg)
+    assert fc["names"] == ["fc.weight"] and fc["params"][0] is net.fc.weight
+    assert fc["lr"] == pytest.approx(2e-3 * (fan_in // 4) / fan_in)
+    assert "fc.weight" not in rest["names"] and len(rest["params"]) == len(list(net.parameters())) - 1
+    assert len(T.parameter_groups(net, TrainConfig(lr=2e-3, fc_lr="none"))) == 1
+    with pytest.raises(MeshseqError, match="--fc-lr"):
+        TrainConfig(fc_lr="small")
+    # a config stored before the option existed reproduces its run: one rate
+    stored = TrainConfig().to_dict()
+    del stored["fc_lr"]
+    assert TrainConfig.from_dict(stored).fc_lr == "none"
+
+
+def test_two_learning_rates_train_as_set_and_resume_bit_for_bit(tmp_path, monkeypatch):
+    import json
+
+    import meshseq.train as T
+
+    seq, feats = limb()
+    fan_in = seq.n_vertices * 9
+    monkeypatch.setattr(T, "FC_REFERENCE_FAN_IN", fan_in // 4)
+    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+    cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=3, log_every=1, lr=1e-3)
+    one = train(data, tmp_path / "a", TrainConfig(iterations=6, **cfg), SMALL, progress=False, log=None)
+    train(data, tmp_path / "b", TrainConfig(iterations=3, **cfg), SMALL, progress=False, log=None)
+    two = train(data, tmp_path / "b", TrainConfig(iterations=6, **cfg), SMALL, resume=True, progress=False, log=None)
+    for k, v in one["model"].state_dict().items():
+        assert torch.equal(v, two["model"].state_dict()[k]), k
+    state = json.loads((tmp_path / "a" / "checkpoints" / "00000006" / "state.json").read_text())
+    groups = state["optimizer"]["param_groups"]
+    assert [g["lr"] for g in groups] == pytest.approx([1e-3, 1e-3 * (fan_in // 4) / fan_in])
+    assert groups[1]["params"] == ["fc.weight"]
+    # the FC moved less than under one rate, the rest alike in scale: the rate took effect
+    monkeypatch.setattr(T, "FC_REFERENCE_FAN_IN", 9000)
+    same = train(data, tmp_path / "c", TrainConfig(iterations=6, **cfg), SMALL, progress=False, log=None)
+    torch.manual_seed(0)
+    init = small_model(seq).fc.weight.detach()  # what train() starts from (seed 0)
+    moved = (one["model"].fc.weight.detach() - init).abs().mean()
+    assert float(moved / (same["model"].fc.weight.detach() - init).abs().mean()) < 0.5

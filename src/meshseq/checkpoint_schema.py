@@ -218,22 +218,22 @@ def check_state_meta(meta, file: Path, iteration: int | None = None) -> None:
     check(meta, _STATE, file)
     _check_iteration(meta, file, iteration)
     groups = meta["optimizer"]["param_groups"]
-    if len(groups) != 1:
-        raise CheckpointError(file, "optimizer.param_groups", f"expected one parameter group, got {len(groups)}")
-    g = groups[0]
+    if len(groups) not in (1, 2):  # one rate, or the FC weight's own (TrainConfig.fc_lr)
+        raise CheckpointError(file, "optimizer.param_groups", f"expected one or two parameter groups, "
+                              f"got {len(groups)}")
     need = {"params": [str], "lr": float, "betas": [float], "eps": float, "weight_decay": float}
-    check(g, need, file, "optimizer.param_groups[0]")
-    if not g["lr"] > 0:
-        raise CheckpointError(file, "optimizer.param_groups[0].lr", f"{g['lr']}: expected a positive number")
-    if len(g["betas"]) != 2 or not all(0 <= b < 1 for b in g["betas"]):
-        raise CheckpointError(file, "optimizer.param_groups[0].betas", f"{g['betas']}: expected two numbers in [0, 1)")
-    if not g["eps"] > 0 or g["weight_decay"] < 0:
-        raise CheckpointError(file, "optimizer.param_groups[0]",
-                              f"eps {g['eps']} must be > 0, weight_decay {g['weight_decay']} >= 0")
-    for key, val in g.items():
-        if key not in need and not isinstance(val, (bool, type(None))):
-            raise CheckpointError(file, f"optimizer.param_groups[0].{key}",
-                                  f"expected true, false or null, got {_show(val)}")
+    for i, g in enumerate(groups):
+        where = f"optimizer.param_groups[{i}]"
+        check(g, need, file, where)
+        if not g["lr"] > 0:
+            raise CheckpointError(file, f"{where}.lr", f"{g['lr']}: expected a positive number")
+        if len(g["betas"]) != 2 or not all(0 <= b < 1 for b in g["betas"]):
+            raise CheckpointError(file, f"{where}.betas", f"{g['betas']}: expected two numbers in [0, 1)")
+        if not g["eps"] > 0 or g["weight_decay"] < 0:
+            raise CheckpointError(file, where, f"eps {g['eps']} must be > 0, weight_decay {g['weight_decay']} >= 0")
+        for key, val in g.items():
+            if key not in need and not isinstance(val, (bool, type(None))):
+                raise CheckpointError(file, f"{where}.{key}", f"expected true, false or null, got {_show(val)}")
     for name, scalars in meta["optimizer"]["scalars"].items():
         if any(v < 0 for v in scalars.values()):
             raise CheckpointError(file, f"optimizer.scalars.{name}", "negative step count")
@@ -312,10 +312,10 @@ def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> 
     like the parameters ``params`` (name -> tensor) for exactly the parameters with step counts in
     ``meta`` (state.json), finite, and valid torch generator states ``rng.torch[.rankR]``."""
     scalars = meta["optimizer"]["scalars"]
-    group = meta["optimizer"]["param_groups"][0]
-    if group["params"] != list(params):
-        raise CheckpointError(file.with_name("state.json"), "optimizer.param_groups[0].params",
-                              "does not list the model's parameters")
+    listed = [n for g in meta["optimizer"]["param_groups"] for n in g["params"]]
+    if sorted(listed) != sorted(params) or len(set(listed)) != len(listed):
+        raise CheckpointError(file.with_name("state.json"), "optimizer.param_groups",
+                              "do not list each of the model's parameters once")
     moments: dict = {}
     for key, t in tensors.items():
         if key.startswith("optim."):

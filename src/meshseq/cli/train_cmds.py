@@ -64,6 +64,9 @@ def register(sub) -> None:
     l.add_argument("--step-scale", choices=("none", "data"), default=None,
                    help="none: X' = X + dX (the paper); data: X' = X + s dX with s the RMS frame-to-frame "
                    "change of each channel in the training data")
+    l.add_argument("--fc-lr", choices=("fan-in", "none"), default=None,
+                   help="fan-in: the big FC weight's learning rate times min(1, 9000 / (vertices x 9)), "
+                   "so large meshes train stably (the default recipe); none: one rate for all (the paper)")
     l.add_argument("--no-kl", action="store_true", help="drop L_KL (paper Table 1 ablation)")
     l.add_argument("--no-l2", action="store_true", help="drop L_2 (paper Fig. 3 ablation)")
     d = p.add_argument_group("data")
