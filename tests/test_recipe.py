@@ -274,3 +274,24 @@ def test_two_learning_rates_train_as_set_and_resume_bit_for_bit(tmp_path, monkey
     init = small_model(seq).fc.weight.detach()  # what train() starts from (seed 0)
     moved = (one["model"].fc.weight.detach() - init).abs().mean()
     assert float(moved / (same["model"].fc.weight.detach() - init).abs().mean()) < 0.5
+
+
+def test_a_run_stored_before_fc_lr_existed_resumes_with_one_rate(tmp_path):
+    import json
+
+    import meshseq
+    from meshseq import checkpoint as ckpt
+
+    seq, feats = limb()
+    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+    cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=2, log_every=1)
+    train(data, tmp_path / "run", TrainConfig(iterations=2, **cfg), SMALL, progress=False, log=None)
+    meta_path = tmp_path / "run" / "checkpoints" / "00000002" / "model.json"
+    meta = json.loads(meta_path.read_text())
+    del meta["train"]["fc_lr"]  # as written before the option existed
+    meta_path.write_text(json.dumps(meta))
+    assert meshseq.load(tmp_path / "run").iteration == 2
+    out = train(data, tmp_path / "run", TrainConfig(iterations=4, **cfg), SMALL, resume=True, progress=False,
+                log=None)
+    assert out["iteration"] == 4
+    assert ckpt.load_folder(tmp_path / "run" / "checkpoints" / "00000004").meta["train"]["fc_lr"] == "none"
