@@ -102,8 +102,18 @@ def training_seconds(run: Path) -> float:
     return sum(ends) + (seconds[-1] if seconds else 0.0)
 
 
-def evaluate_run(data: str, run: Path, out_json: Path, plots: Path | None, args, baselines: bool) -> dict:
+def evaluate_run(data: str, run: Path, out_json: Path, plots: Path | None, args, baselines: bool,
+                 iteration: int) -> dict:
+    """``meshseq evaluate`` of one sequence; an evaluation of the same checkpoint iteration with
+    the same gaps already in ``out_json`` is reused (a restarted paper.py does not redo it)."""
     from meshseq.cli import main
+
+    if out_json.is_file() and plots is None:
+        done = json.loads(out_json.read_text())
+        gaps = sorted(done.get("completion", {})) == sorted(args.gaps.split(",")) or not baselines
+        if done.get("iteration") == iteration and gaps and ("vae_latent" in done["errors"]) == baselines:
+            print(f"   reusing {out_json} (iteration {iteration})", flush=True)
+            return done
 
     argv = ["evaluate", str(run), data, "--json", str(out_json), "--force", "--device", args.device,
             "--vae-iterations", str(args.vae_iterations), "--cma-evals", str(args.cma_evals),
@@ -299,7 +309,7 @@ def main() -> None:
                 plots = run / "plots" if variant == "bd" and len(specs) == 1 else None
                 suffix = "" if len(specs) == 1 else "_" + spec.rsplit(":", 1)[-1]
                 per_sequence.append(evaluate_run(spec, run, run / f"evaluation{suffix}.json", plots, args,
-                                                 baselines=variant == "bd"))
+                                                 baselines=variant == "bd", iteration=runs[name][variant]["iteration"]))
             r = results[name][variant] = combine_results(per_sequence)
             if variant == "bd":
                 img.mkdir(parents=True, exist_ok=True)
@@ -334,7 +344,7 @@ def _feature_change_png(result: dict, name: str, path: Path) -> None:
     ax = fig.axes[0]
     ax.axhline(fc["ground_truth"], color="k", ls="--", label="ground truth")
     ax.legend()
-    plots.save_figure(fig, path)
+    plots.save_figure(fig, path, force=True)
 
 
 def collect(records: Path) -> dict:
