@@ -26,9 +26,11 @@ from hypothesis.extra import numpy as hnp
 from meshseq.errors import MeshseqError
 from meshseq.io import MeshSequence, load_sequence
 
-#: examples per property; MESHSEQ_FUZZ_EXAMPLES=2000 for a long hunt
+#: examples per property; MESHSEQ_FUZZ_EXAMPLES=2000 for a long hunt (random examples: a hunt);
+#: the default run draws the same examples every time, so CI cannot fail by chance
 EXAMPLES = int(os.environ.get("MESHSEQ_FUZZ_EXAMPLES", "40"))
-FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
+FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow],
+                derandomize="MESHSEQ_FUZZ_EXAMPLES" not in os.environ)
 FEW = settings(FUZZ, max_examples=max(1, EXAMPLES * 3 // 8))
 
 OCTA_V = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64)
