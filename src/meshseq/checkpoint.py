@@ -39,7 +39,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors import SafetensorError
 from safetensors.torch import load_file, save
 
 from meshseq.errors import MeshseqError, MeshseqWarning

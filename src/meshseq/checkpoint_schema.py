@@ -107,17 +107,20 @@ def check(value, spec, file, field: str = "") -> None:
 # model.json
 
 #: options added after format version 1 was first written: optional (the dataclass default)
-ADDED_LATER = {"given", "step_scale", "input_norm", "sample", "precision", "fc_lr"}
+ADDED_LATER = {"given", "step_scale", "input_norm", "sample", "precision"}  # and train.LEGACY_TRAIN_DEFAULTS
 _ANNOTATIONS = {"int": int, "float": float, "str": str, "bool": bool, "list[float] | None": ([float], None)}
 
 
 def config_schema(cls) -> dict:
     """The JSON schema of a config dataclass (``ModelConfig``, ``TrainConfig``) from its fields."""
+    from meshseq.train import LEGACY_TRAIN_DEFAULTS  # added later, with the value older runs had
+
+    added_later = ADDED_LATER | set(LEGACY_TRAIN_DEFAULTS)
     schema = {}
     for f in fields(cls):
         spec = _ANNOTATIONS[f.type]
         spec = spec if isinstance(spec, list | tuple) else (spec,)
-        schema[f.name] = Opt(spec) if f.name in ADDED_LATER and f.default is not MISSING else spec
+        schema[f.name] = Opt(spec) if f.name in added_later and f.default is not MISSING else spec
     return schema
 
 
