@@ -33,8 +33,7 @@ def validation_blocks(checkpoint: Path, data: list[str], bodies: str | None):
 
     full, verts = recipe_study.development_data(recipe_study.data_specs(data, bodies))
     model = meshseq.load(checkpoint)
-    meta = json.loads((checkpoint / "model.json").read_text())
-    splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
+    splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
     blocks = [(model.scaling.apply(f).astype(np.float32), v, s.heldout, f)
               for f, v, s in zip(full.features, verts, splits)]
     return model, blocks
@@ -44,22 +43,17 @@ def motion_report(model, blocks, frames: int = 50) -> dict:
     """Per-step and mean motion level of generated frames over the truth's (mu and sampled z)."""
     import torch
 
-    from meshseq.evaluate import prediction_starts
+    from meshseq.evaluate import feature_change, prediction_starts
     from meshseq.plots import feature_change as relative_change
-    from meshseq.synthesize import predict
 
     per_step = {"mu": [], "sampled": []}
     truth = []
     for scaled, _, (lo, hi), raw in blocks:
         starts = prediction_starts(lo, hi, 1, 1)
-        given = np.stack([scaled[s:s + 1] for s in starts])  # (B, 1, V, 9)
         for key, sample in (("mu", False), ("sampled", True)):
             torch.manual_seed(0)
-            gen = predict(model, given, frames, sample=sample)
-            x = model.scaling.invert(np.concatenate([given, gen], axis=1).astype(np.float64))
-            flat = x.reshape(len(x), frames + 1, -1)
-            step = np.linalg.norm(np.diff(flat, axis=1), axis=2) / np.linalg.norm(flat[:, :-1], axis=2)
-            per_step[key].append(step.mean(axis=0))
+            curve = feature_change(model, scaled, starts, 1, frames, ["ours"], sample=sample)["ours"]
+            per_step[key].append(np.asarray(curve))
         truth.append(float(relative_change(raw[lo:hi]).mean()))
     level = float(np.mean(truth))
     out = {"truth_level": level}

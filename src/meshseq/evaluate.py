@@ -32,11 +32,12 @@ def prediction_starts(lo: int, hi: int, given: int, horizon: int, every: int = 1
 
 
 def predicted_features(method: str, model, feats: np.ndarray, starts: np.ndarray, given: int,
-                       n_frames: int, vae=None) -> np.ndarray:
-    """Scaled features ``(B, n, V, 9)`` predicted by ``method`` after ``feats[s:s+given]``."""
+                       n_frames: int, vae=None, sample: bool = False) -> np.ndarray:
+    """Scaled features ``(B, n, V, 9)`` predicted by ``method`` after ``feats[s:s+given]``
+    (``sample``: ours draws the VAE latent instead of taking its mean)."""
     windows = np.stack([feats[s:s + given] for s in starts])  # (B, U, V, 9)
     if method == "ours":
-        return predict(model, windows, n_frames)
+        return predict(model, windows, n_frames, sample=sample)
     if method == "zero_velocity":
         return baselines.zero_velocity(windows, n_frames)
     if method == "linear_acap":
@@ -88,15 +89,16 @@ def prediction_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
 
 
 def feature_change(model, feats: np.ndarray, starts: np.ndarray, given: int, n_frames: int,
-                   methods: list[str], vae=None) -> dict:
+                   methods: list[str], vae=None, sample: bool = False) -> dict:
     """Mean feature-change curve (length ``n_frames``) per method, plus ``ground_truth``'s mean level.
 
     The curve starts at the step from the last given frame to the first generated one.
+    ``sample``: ours draws the VAE latent (default: its mean, as meshseq predicts).
     """
     out = {}
     for method in methods:
         windows_last = np.stack([feats[s + given - 1] for s in starts])[:, None]
-        f = predicted_features(method, model, feats, starts, given, n_frames, vae)
+        f = predicted_features(method, model, feats, starts, given, n_frames, vae, sample)
         raw = model.scaling.invert(np.concatenate([windows_last, f], axis=1).astype(np.float64))
         out[method] = relative_change(raw).tolist()
     raw_truth = model.scaling.invert(feats.astype(np.float64))
