@@ -6,6 +6,7 @@ root, or ``$MESHSEQ_SHARED_DATA``). A test that needs it FAILS (never skips) whe
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -41,12 +42,31 @@ def shared_data() -> Path:
     return shared_data_dir()
 
 
+@contextlib.contextmanager
+def torch_threads(n: int = 1):
+    """Run the block on ``n`` torch threads, then restore the previous count."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 @pytest.fixture
 def one_torch_thread():
     """Tiny models run fastest, and steadiest on a shared machine, on one torch thread."""
-    import torch
+    with torch_threads(1):
+        yield
 
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+
+def training_data(seq, features=None):
+    """``TrainingData`` of one sequence: its ACAP features (extracted unless given), its first
+    frame as the reference mesh."""
+    from meshseq import acap
+    from meshseq.train import TrainingData
+
+    feats = acap.extract(seq.vertices, seq.faces) if features is None else features
+    return TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])

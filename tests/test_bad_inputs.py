@@ -10,7 +10,7 @@ import tempfile
 
 import pytest
 
-from meshseq import acap
+from conftest import torch_threads, training_data
 from meshseq.cli import main
 from meshseq.data.synthetic import twisting_limb
 from meshseq.io import save_sequence
@@ -95,22 +95,13 @@ def test_train_option_errors_create_no_run_folder(option, fragment, limb_npz, tm
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory, limb_npz):
-    import torch
-
     from meshseq.io import load_sequence
-    from meshseq.train import TrainConfig, TrainingData, train
+    from meshseq.train import TrainConfig, train
 
-    seq = load_sequence(limb_npz)
-    data = TrainingData([seq.name], [seq.source], [acap.extract(seq.vertices, seq.faces)], seq.faces,
-                        seq.vertices[0])
     run = tmp_path_factory.mktemp("run") / "run"
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        train(data, run, TrainConfig(iterations=1, window=4, batch=2), {"latent": 8, "lstm_layers": 1},
-              device="cpu", progress=False, log=None)
-    finally:
-        torch.set_num_threads(threads)
+    with torch_threads(1):
+        train(training_data(load_sequence(limb_npz)), run, TrainConfig(iterations=1, window=4, batch=2),
+              {"latent": 8, "lstm_layers": 1}, device="cpu", progress=False, log=None)
     return run
 
 

@@ -16,6 +16,7 @@ import torch
 from safetensors.torch import load_file
 
 import meshseq
+from conftest import training_data
 from meshseq import acap
 from meshseq import checkpoint as ckpt
 from meshseq.cli import main
@@ -33,8 +34,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 @pytest.fixture(scope="module")
 def limb():
     seq = twisting_limb(frames=30, rings=8, segments=6)
-    data = TrainingData([seq.name], [seq.source], [acap.extract(seq.vertices, seq.faces)], seq.faces, seq.vertices[0])
-    return seq, data
+    return seq, training_data(seq)
 
 
 def all_tensors(folder):

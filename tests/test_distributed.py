@@ -7,6 +7,7 @@ import os
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import torch
 from safetensors.torch import load_file
@@ -41,12 +42,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_two_cpu_ranks_hold_identical_weights(tmp_path):
-    seq = twisting_limb(frames=24, rings=8, segments=6)
-    save_sequence(seq, tmp_path / "limb.npz")
-    script = tmp_path / "rank.py"
-    script.write_text(RANK_SCRIPT)
-    run, out = tmp_path / "run", tmp_path / "out"
+def run_two_ranks(tmp_path, script_text: str, run) -> Path:
+    """Run ``script_text`` as ``SCRIPT LIMB.npz RUN OUT`` on two Gloo CPU ranks on loopback (a
+    small limb sequence as the data); returns OUT, where the ranks leave their results."""
+    save_sequence(twisting_limb(frames=24, rings=8, segments=6), tmp_path / "limb.npz")
+    script = tmp_path / "ranks.py"
+    script.write_text(script_text)
+    out = tmp_path / "out"
     out.mkdir()
     env = dict(os.environ, OMP_NUM_THREADS="1", GLOO_SOCKET_IFNAME="lo", MASTER_ADDR="127.0.0.1")
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc_per_node", "2",
@@ -54,6 +56,12 @@ def test_two_cpu_ranks_hold_identical_weights(tmp_path):
            str(script), str(tmp_path / "limb.npz"), str(run), str(out)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    return out
+
+
+def test_two_cpu_ranks_hold_identical_weights(tmp_path):
+    run = tmp_path / "run"
+    out = run_two_ranks(tmp_path, RANK_SCRIPT, run)
     w0, w1 = load_file(str(out / "rank0.safetensors")), load_file(str(out / "rank1.safetensors"))
     assert w0.keys() == w1.keys()
     for k in w0:
@@ -106,18 +114,7 @@ dist.destroy_process_group()
 def test_two_cpu_ranks_resume_bit_for_bit(tmp_path):
     """4 iterations on two ranks = 2 iterations + resume + 2 more: weights, every rank's
     generator and the checkpoints' tensors agree exactly."""
-    seq = twisting_limb(frames=24, rings=8, segments=6)
-    save_sequence(seq, tmp_path / "limb.npz")
-    script = tmp_path / "resume.py"
-    script.write_text(RESUME_SCRIPT)
-    out = tmp_path / "out"
-    out.mkdir()
-    env = dict(os.environ, OMP_NUM_THREADS="1", GLOO_SOCKET_IFNAME="lo", MASTER_ADDR="127.0.0.1")
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc_per_node", "2",
-           "--master_addr", "127.0.0.1", "--master_port", str(free_port()),
-           str(script), str(tmp_path / "limb.npz"), str(tmp_path), str(out)]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=240)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = run_two_ranks(tmp_path, RESUME_SCRIPT, tmp_path)
     for rank in (0, 1):
         one, two = load_file(str(out / f"one{rank}.safetensors")), load_file(str(out / f"two{rank}.safetensors"))
         assert one.keys() == two.keys()

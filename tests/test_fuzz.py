@@ -23,6 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from conftest import torch_threads, training_data
 from meshseq.errors import MeshseqError
 from meshseq.io import MeshSequence, load_sequence
 
@@ -205,24 +206,15 @@ def test_hdf5_of_random_arrays_loads_or_gives_one_line_errors(vertices, faces, f
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory):
     """One checkpoint folder of a 1-iteration model (a few kB of weights)."""
-    import torch
-
-    from meshseq import acap
     from meshseq import checkpoint as ckpt
     from meshseq.data.synthetic import twisting_limb
-    from meshseq.train import TrainConfig, TrainingData, train
+    from meshseq.train import TrainConfig, train
 
-    seq = twisting_limb(frames=12, rings=4, segments=4)
-    data = TrainingData([seq.name], [seq.source], [acap.extract(seq.vertices, seq.faces)], seq.faces,
-                        seq.vertices[0])
     run = tmp_path_factory.mktemp("ckpt") / "run"
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        train(data, run, TrainConfig(iterations=1, window=3, batch=2, holdout=0.0), {"latent": 4, "lstm_layers": 1},
+    with torch_threads(1):
+        train(training_data(twisting_limb(frames=12, rings=4, segments=4)), run,
+              TrainConfig(iterations=1, window=3, batch=2, holdout=0.0), {"latent": 4, "lstm_layers": 1},
               device="cpu", progress=False, log=None)
-    finally:
-        torch.set_num_threads(threads)
     return ckpt.latest_checkpoint(run)
 
 

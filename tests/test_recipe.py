@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import training_data
 from meshseq import acap
 from meshseq.data.synthetic import twisting_limb
 from meshseq.data.windows import split_frames
@@ -16,7 +17,6 @@ from meshseq.train import (
     RECIPE_OPTIONS,
     RECIPES,
     TrainConfig,
-    TrainingData,
     collapse_warning,
     latent_spread,
     step_spread,
@@ -115,7 +115,7 @@ def test_training_warns_when_the_latent_collapses(tmp_path, monkeypatch):
     import meshseq.train as tr
 
     seq, feats = limb()
-    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+    data = training_data(seq, feats)
     monkeypatch.setattr(tr, "COLLAPSE_AFTER", 0)
     messages = []
     # an overwhelming L_2 crushes the tied FC at once: the latent carries nothing
@@ -150,7 +150,7 @@ def test_step_scale_data_is_stored_and_reloaded(tmp_path):
     import meshseq
 
     seq, feats = limb()
-    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+    data = training_data(seq, feats)
     cfg = TrainConfig(iterations=2, window=8, batch=2, eval_every=0, checkpoint_every=0, step_scale="data", given=3)
     train(data, tmp_path / "run", cfg, SMALL, progress=False, log=None)
     model = meshseq.load(tmp_path / "run")
@@ -171,7 +171,7 @@ def test_input_norm_standardises_the_encoder_input_and_is_stored(tmp_path):
     import meshseq
 
     seq, feats = limb()
-    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+    data = training_data(seq, feats)
     cfg = TrainConfig(iterations=2, window=8, batch=2, eval_every=0, checkpoint_every=0, input_norm=True)
     train(data, tmp_path / "run", cfg, SMALL, progress=False, log=None)
     model = meshseq.load(tmp_path / "run")
@@ -256,7 +256,7 @@ def test_two_learning_rates_train_as_set_and_resume_bit_for_bit(tmp_path, monkey
     seq, feats = limb()
     fan_in = seq.n_vertices * 9
     monkeypatch.setattr(T, "FC_REFERENCE_FAN_IN", fan_in // 4)
-    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+    data = training_data(seq, feats)
     cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=3, log_every=1, lr=1e-3)
     one = train(data, tmp_path / "a", TrainConfig(iterations=6, **cfg), SMALL, progress=False, log=None)
     train(data, tmp_path / "b", TrainConfig(iterations=3, **cfg), SMALL, progress=False, log=None)
@@ -283,7 +283,7 @@ def test_a_run_stored_before_fc_lr_existed_resumes_with_one_rate(tmp_path):
     from meshseq import checkpoint as ckpt
 
     seq, feats = limb()
-    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+    data = training_data(seq, feats)
     cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=2, log_every=1)
     train(data, tmp_path / "run", TrainConfig(iterations=2, **cfg), SMALL, progress=False, log=None)
     meta_path = tmp_path / "run" / "checkpoints" / "00000002" / "model.json"

@@ -10,13 +10,14 @@ import pytest
 import torch
 
 import meshseq
+from conftest import training_data
 from meshseq import acap
 from meshseq.cli import main
 from meshseq.data.synthetic import twisting_limb
 from meshseq.data.windows import WindowSampler, heldout_rows, split_frames, window_starts
 from meshseq.errors import MeshseqError
 from meshseq.io import save_sequence
-from meshseq.train import TrainConfig, TrainingData, WindowLoss, load_training_data, train, window_losses
+from meshseq.train import TrainConfig, WindowLoss, load_training_data, train, window_losses
 
 SMALL = {"latent": 16, "lstm_layers": 2}
 
@@ -26,8 +27,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 def limb_data(frames=40, seed=0):
     seq = twisting_limb(frames=frames, rings=10, segments=8, seed=seed)
-    return seq, TrainingData([seq.name], [seq.source], [acap.extract(seq.vertices, seq.faces)], seq.faces,
-                             seq.vertices[0])
+    return seq, training_data(seq)
 
 
 # -- splits and windows ------------------------------------------------------------------------
