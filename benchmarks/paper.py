@@ -289,6 +289,8 @@ def main() -> None:
                     help="train nothing: write --results from the records in --records")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args()
+    from meshseq.io import json_text
+
     if args.markdown_only:
         write_markdown(collect(Path(args.records)), args.device, Path(args.results))
         print(f"wrote {args.results}")
@@ -315,8 +317,8 @@ def main() -> None:
                 img.mkdir(parents=True, exist_ok=True)
                 _feature_change_png(r, name, img / f"feature_change_{name}.png")
             config = {k: getattr(args, k) for k in ("iterations", "batch", "window", "stride", "latent")}
-            summary = json.dumps({"results": results[name], "runs": runs[name], "config": config,
-                                  "argv": args.argv, "recipe": args.recipe, "device": args.device})
+            summary = json_text({"results": results[name], "runs": runs[name], "config": config,
+                                 "argv": args.argv, "recipe": args.recipe, "device": args.device}, indent=None)
             (out / name / "summary.json").write_text(summary)
             _write_text(Path(args.records) / f"{name}.json", summary)
             # after every run, from every data set recorded (also by earlier invocations)
