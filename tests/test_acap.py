@@ -124,6 +124,18 @@ def test_real_data_roundtrip_default_and_exact(name):
     assert _rel_error(rec.solve(exact.astype(np.float32), target=v), v).mean() <= 1e-5
 
 
+def test_threads_over_frame_chunks_give_the_same_features_bit_for_bit():
+    """The frame chunks on a thread pool (default: one thread per CPU) write the same numbers as
+    one thread, default and exact (whose sparse solves share one factor under a lock)."""
+    data = np.load(shared_file("pcow.npz"))
+    v, f = data["vertices"][:60].astype(np.float64), data["faces"]
+    for exact in (False, True):
+        one = extract(v, f, exact=exact, threads=1)
+        assert np.array_equal(extract(v, f, exact=exact, threads=3), one)
+    # 60 frames = 8 chunks: more chunks than threads, and a short last chunk
+    assert len(v) % 8 and len(v) // 8 > 3
+
+
 def test_temporal_consistency_removes_two_pi_jumps_of_a_part_spinning_past_two_pi():
     v, f = _sphere()
     angles = np.linspace(0, 3 * np.pi, 40)  # 1.5 turns about a fixed axis

@@ -233,10 +233,11 @@ def cotangent_weights(vertices: np.ndarray, topology: Topology) -> np.ndarray:
     return w
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray, scatter: sp.csr_matrix | None = None) -> np.ndarray:
     """Area-weighted unit vertex normals, ``(..., V, 3)`` for vertices ``(..., V, 3)``.
 
-    A vertex whose summed face normal vanishes gets the zero vector.
+    A vertex whose summed face normal vanishes gets the zero vector. ``scatter``: the
+    ``face_scatter(faces, V)`` matrix, for callers that compute normals of many frames.
     """
     v = np.asarray(vertices, dtype=np.float64)
     lead = v.shape[:-2]
@@ -248,13 +249,14 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     fn[..., 0] = u[..., 1] * w[..., 2] - u[..., 2] * w[..., 1]
     fn[..., 1] = u[..., 2] * w[..., 0] - u[..., 0] * w[..., 2]
     fn[..., 2] = u[..., 0] * w[..., 1] - u[..., 1] * w[..., 0]
-    vn = (_face_scatter(faces, n_v) @ fn.reshape(len(faces), -1)).reshape(pv.shape)
+    scatter = face_scatter(faces, n_v) if scatter is None else scatter
+    vn = (scatter @ fn.reshape(len(faces), -1)).reshape(pv.shape)
     norm = np.sqrt(np.einsum("vtc,vtc->vt", vn, vn))[..., None]
     vn = np.divide(vn, norm, out=np.zeros_like(vn), where=norm > 0)
     return np.moveaxis(vn, 0, 1).reshape(lead + (n_v, 3))
 
 
-def _face_scatter(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+def face_scatter(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     """Sparse ``(V, F)`` matrix summing each face's value into its three vertices."""
     nf = len(faces)
     rows = np.asarray(faces, dtype=np.int64).T.ravel()

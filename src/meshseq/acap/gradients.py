@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from meshseq.mesh import Topology, cotangent_weights, mean_ring_edge_length, vertex_normals
+from meshseq.mesh import Topology, cotangent_weights, face_scatter, mean_ring_edge_length, vertex_normals
 
 #: Scale of the normal row relative to the mean edge length (reference code: 0.3).
 NORMAL_ROW_SCALE = 0.3
@@ -58,6 +58,7 @@ class GradientOperator:
         A_sum = np.zeros((n, 3, 3))
         np.add.at(A_sum, d[:, 0], A)
         if normal_row:
+            self._face_scatter = face_scatter(topology.faces, n)  # (V, F), reused every frame
             self._ref_normal = vertex_normals(q, topology.faces) * (
                 NORMAL_ROW_SCALE * mean_ring_edge_length(q, topology)
             )[:, None]  # (V, 3), 0.3 l n
@@ -76,7 +77,7 @@ class GradientOperator:
         nb = (self._neighbor_sum @ pv.reshape(n, 3 * t)).reshape(3, n, t, 3)  # [b, i, t, a]
         B = nb.transpose(2, 1, 3, 0) - p[..., :, None] * self._ring_sum[None, :, None, :]
         if self.normal_row:
-            nrm = vertex_normals(p, self.topology.faces) * (
+            nrm = vertex_normals(p, self.topology.faces, self._face_scatter) * (
                 NORMAL_ROW_SCALE * mean_ring_edge_length(p, self.topology)
             )[..., None]  # (T, V, 3)
             B += nrm[..., :, None] * self._ref_normal[None, :, None, :]
@@ -111,8 +112,18 @@ def polar_decomposition(T: np.ndarray, tol: float = 1e-13, max_iter: int = 30) -
     Returns:
         R, S: ``(..., 3, 3)`` each.
     """
-    shape = T.shape
-    M9 = np.ascontiguousarray(np.asarray(T, dtype=np.float64).reshape(-1, 9).T)  # (9, N) SoA
+    T = np.asarray(T, dtype=np.float64)
+    R9, S6 = polar_soa(T.reshape(-1, 9).T, tol, max_iter)
+    R = R9.T.reshape(T.shape)
+    S = S6[[0, 1, 2, 1, 3, 4, 2, 4, 5]].T.reshape(T.shape)
+    return R, S
+
+
+def polar_soa(M9: np.ndarray, tol: float = 1e-13, max_iter: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`polar_decomposition` in structure-of-arrays form: ``M9 (9, N)`` row-major 3x3
+    matrices -> rotations ``R9 (9, N)`` and the six entries ``S00, S01, S02, S11, S12, S22`` of the
+    symmetric factor ``(6, N)``."""
+    M9 = np.ascontiguousarray(M9, dtype=np.float64)
     n = M9.shape[1]
     R9 = np.empty_like(M9)
     todo = [np.zeros(0, dtype=np.int64)]
@@ -122,13 +133,16 @@ def polar_decomposition(T: np.ndarray, tol: float = 1e-13, max_iter: int = 30) -
         R9[:, s:s + _POLAR_CHUNK] = Rb
         todo.append(s + np.flatnonzero(~ok))
     rest = np.concatenate(todo)
-    R = R9.T.reshape(-1, 3, 3)
-    M = M9.T.reshape(-1, 3, 3)
     if len(rest):
-        R[rest] = _svd_rotation(M[rest])
-    S = np.matmul(R.transpose(0, 2, 1), M)
-    S = 0.5 * (S + S.transpose(0, 2, 1))
-    return R.reshape(shape), S.reshape(shape)
+        R9[:, rest] = _svd_rotation(M9[:, rest].T.reshape(-1, 3, 3)).reshape(-1, 9).T
+    # S = R^T M, symmetrised: S_ab = sum_k R_ka M_kb
+    def entry(a: int, b: int) -> np.ndarray:
+        return R9[a] * M9[b] + R9[3 + a] * M9[3 + b] + R9[6 + a] * M9[6 + b]
+
+    S6 = np.empty((6, n))
+    for k, (a, b) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+        S6[k] = entry(a, b) if a == b else 0.5 * (entry(a, b) + entry(b, a))
+    return R9, S6
 
 
 _POLAR_CHUNK = 8192
@@ -147,16 +161,21 @@ def _newton_polar(M9: np.ndarray, tol: float, max_iter: int) -> tuple[np.ndarray
     proper = det0 > 1e-6 * np.maximum(fro2, 1e-300) ** 1.5
     X = [np.where(proper, x, eye) for x, eye in zip(X, (1, 0, 0, 0, 1, 0, 0, 0, 1))]
     change = np.zeros(M9.shape[1])
-    for _ in range(max_iter):
+    for it in range(max_iter):
         a, b, c, d, e, f, g, h, i = X
         cof = [e * i - f * h, f * g - d * i, d * h - e * g,
                c * h - b * i, a * i - c * g, b * g - a * h,
                b * f - c * e, c * d - a * f, a * e - b * d]  # det(X) X^-T, row-major
         det = a * cof[0] + b * cof[1] + c * cof[2]
-        gam = np.abs(det) ** (-1.0 / 3.0)
-        inv = 1.0 / (gam * det)
-        new = [0.5 * (gam * x + inv * cx) for x, cx in zip(X, cof)]
-        change = np.max(np.abs(np.stack(new) - np.stack(X)), axis=0)
+        half_gam = 0.5 / np.cbrt(np.abs(det))  # gamma / 2
+        half_inv = 0.25 / (half_gam * det)  # 1 / (2 gamma det)
+        new = [half_gam * x + half_inv * cx for x, cx in zip(X, cof)]
+        if it < 2 < max_iter:  # the first steps never converge to tol: skip the check
+            X = new
+            continue
+        change = np.abs(new[0] - X[0])
+        for x, nx in zip(X[1:], new[1:]):
+            np.maximum(change, np.abs(nx - x), out=change)
         X = new
         if change.max() <= tol:
             break

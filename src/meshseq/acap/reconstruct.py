@@ -17,6 +17,8 @@ The exact encoding (method.md 2.5) corrects least-squares gradients T0 by the mi
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -33,6 +35,7 @@ class FactoredMatrix:
 
     def __init__(self, matrix: sp.spmatrix):
         coo = sp.coo_matrix(matrix)
+        self._lock = threading.Lock()
         self.n = coo.shape[0]
         self.matrix = coo.tocsr()
         try:
@@ -53,12 +56,14 @@ class FactoredMatrix:
             self.backend = "splu"
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """Solve for ``b`` of shape ``(n,)`` or ``(n, k)``; returns the same shape."""
+        """Solve for ``b`` of shape ``(n,)`` or ``(n, k)``; returns the same shape. One solve at a
+        time per factor (CHOLMOD's workspace is shared), so threads may call it."""
         rhs = np.ascontiguousarray(b, dtype=np.float64)
-        if self.backend == "splu":
-            return self._lu.solve(rhs)
-        x = np.empty_like(rhs)
-        self._chol.solve(rhs, x)
+        with self._lock:
+            if self.backend == "splu":
+                return self._lu.solve(rhs)
+            x = np.empty_like(rhs)
+            self._chol.solve(rhs, x)
         return x
 
 
@@ -79,9 +84,7 @@ class Reconstructor:
         e = topo.edges
         w = cotangent_weights(q, topo)
         self.edge_weights = w
-        rows = np.concatenate([e[:, 0], e[:, 1], e[:, 0], e[:, 1]])
-        cols = np.concatenate([e[:, 1], e[:, 0], e[:, 0], e[:, 1]])
-        self.laplacian = sp.csr_matrix((np.concatenate([-w, -w, w, w]), (rows, cols)), shape=(n, n))
+        self.laplacian = _laplacian(e, w, n)
         self.pinned = topo.component_roots
         free = np.ones(n, dtype=bool)
         free[self.pinned] = False
@@ -89,7 +92,6 @@ class Reconstructor:
         self._factor = FactoredMatrix(self.laplacian[self.free][:, self.free])
         self.rhs_operator = _rhs_operator(q, e, w, n)  # (V, 3V)
         self.reference_offsets = component_offsets(q[None], topo)[0]  # (C, 3)
-        self._exact_factor: FactoredMatrix | None = None
 
     # -- gradients <-> right-hand side -------------------------------------------------------
     def rhs(self, gradients: np.ndarray) -> np.ndarray:
@@ -161,25 +163,54 @@ class Reconstructor:
         return verts + shift[:, topo.component_labels]
 
     # -- exact encoding ----------------------------------------------------------------------
-    def exact_gradients(self, gradients: np.ndarray, vertices: np.ndarray) -> np.ndarray:
-        """Minimum-norm correction of ``gradients (T, V, 3, 3)`` so that solving returns ``vertices``.
 
-        ``dT = B^T (B B^T)^-1 (L p - B T0)`` per gradient row (method.md 2.5); ``B B^T`` is factored
-        once per mesh, with one vertex per component pinned (its null space is the constants).
-        """
+
+class ExactEncoder:
+    """The exact encoding of method.md 2.5 for one reference mesh: least-squares gradients made
+    to reconstruct their frame exactly by the minimum-norm change
+
+        dT = B^T (B B^T)^-1 (L p - B T0)   (per gradient row),
+
+    with ``B B^T`` factored once (one vertex per component pinned: its null space is the
+    constants). Only ``L`` and ``B`` are needed, not the Laplacian's factor. Safe to call from
+    several threads (the factor's solve takes a lock).
+
+    Args:
+        reference: ``(V, 3)``; topology: its connectivity; weights: ``(E,)`` cotangent weights of
+            ``topology.edges`` (computed when not given).
+    """
+
+    def __init__(self, reference: np.ndarray, topology: Topology, weights: np.ndarray | None = None):
+        q = np.ascontiguousarray(reference, dtype=np.float64)
+        n = topology.n_vertices
+        w = cotangent_weights(q, topology) if weights is None else np.asarray(weights, dtype=np.float64)
+        self.laplacian = _laplacian(topology.edges, w, n)
+        self.rhs_operator = _rhs_operator(q, topology.edges, w, n)  # (V, 3V)
+        free = np.ones(n, dtype=bool)
+        free[topology.component_roots] = False
+        self.free = np.flatnonzero(free)
+        bbt = (self.rhs_operator @ self.rhs_operator.T).tocsr()
+        self._factor = FactoredMatrix(bbt[self.free][:, self.free])
+
+    def __call__(self, gradients: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+        """Corrected ``gradients (T, V, 3, 3)`` of ``vertices (T, V, 3)``: solving returns the vertices."""
         g = np.asarray(gradients, dtype=np.float64)
         p = np.asarray(vertices, dtype=np.float64)
         t, n = g.shape[0], g.shape[1]
-        if self._exact_factor is None:
-            bbt = (self.rhs_operator @ self.rhs_operator.T).tocsr()
-            self._exact_factor = FactoredMatrix(bbt[self.free][:, self.free])
         pv = np.ascontiguousarray(p.transpose(1, 0, 2)).reshape(n, 3 * t)
         tv = np.ascontiguousarray(g.transpose(1, 3, 0, 2)).reshape(3 * n, 3 * t)
         residual = self.laplacian @ pv - self.rhs_operator @ tv  # (V, 3T)
         y = np.zeros_like(residual)
-        y[self.free] = self._exact_factor.solve(residual[self.free])
+        y[self.free] = self._factor.solve(residual[self.free])
         dt = (self.rhs_operator.T @ y).reshape(n, 3, t, 3).transpose(2, 0, 3, 1)  # (T, V, a, c)
         return g + dt
+
+
+def _laplacian(edges: np.ndarray, w: np.ndarray, n: int) -> sp.csr_matrix:
+    """Cotangent Laplacian ``(V, V)``: ``L_ii = sum_j w_ij``, ``L_ij = -w_ij``."""
+    rows = np.concatenate([edges[:, 0], edges[:, 1], edges[:, 0], edges[:, 1]])
+    cols = np.concatenate([edges[:, 1], edges[:, 0], edges[:, 0], edges[:, 1]])
+    return sp.csr_matrix((np.concatenate([-w, -w, w, w]), (rows, cols)), shape=(n, n))
 
 
 def _rhs_operator(q: np.ndarray, edges: np.ndarray, w: np.ndarray, n: int) -> sp.csr_matrix:

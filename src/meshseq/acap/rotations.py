@@ -98,40 +98,47 @@ def spatial_bfs(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.n
     return (w * big_theta[..., None]).transpose(1, 0, 2)
 
 
-def nearest_representative(axis: np.ndarray, theta: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """The representative ``(theta + 2 pi m) w`` of each rotation closest to a target vector.
-
-    Every representative of (w, theta) lies on the line through the origin along w (the flipped
-    axis -w with 2 pi - theta is m = -1), so the nearest one has
-    ``m = round((w . target - theta) / 2 pi)``. For no rotation the axis is taken from the target.
-
-    Args:
-        axis: ``(..., 3)``; theta: ``(...)``; target: ``(..., 3)`` rotation vectors.
-    Returns:
-        ``(..., 3)`` rotation vectors.
-    """
-    small = theta <= NO_ROTATION
-    tnorm = np.linalg.norm(target, axis=-1, keepdims=True)
-    target_axis = np.divide(target, tnorm, out=np.zeros_like(target), where=tnorm > 0)
-    w = np.where(small[..., None] & (tnorm > 0), target_axis, axis)
-    s = np.einsum("...c,...c->...", w, target)
-    m = np.round((s - theta) / TWO_PI)
-    return w * (theta + TWO_PI * m)[..., None]
-
-
 def greedy_temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndarray:
     """Spatial BFS on the first frame, then each frame's representative nearest the previous frame.
+
+    Every representative ``(theta + 2 pi m) w`` of a rotation lies on the line along its axis (the
+    flipped axis -w with 2 pi - theta is m = -1), so with the previous log ``c_{t-1} w_{t-1}`` the
+    nearest is ``c_t = theta_t + 2 pi round((w_t . w_{t-1} c_{t-1} - theta_t) / 2 pi)``: the
+    sequential part is a recurrence on one number per vertex and frame. A frame with no rotation
+    keeps the previous axis (its representatives are 0 and the 2 pi k shells along it).
 
     Args:
         axis: ``(T, V, 3)``; theta: ``(T, V)``.
     Returns:
         ``(T, V, 3)`` rotation vectors.
     """
-    out = np.empty(axis.shape)
-    out[:1] = spatial_bfs(axis[:1], theta[:1], topology)
-    for t in range(1, len(theta)):  # sequential in time by definition; vectorised over vertices
-        out[t] = nearest_representative(axis[t], theta[t], out[t - 1])
-    return out
+    first = spatial_bfs(axis[:1], theta[:1], topology)[0]
+    w, base = _lines(axis, theta, first)
+    cos_turn = np.einsum("tvc,tvc->tv", w[:-1], w[1:])
+    c = np.empty(base.shape)
+    c[0] = base[0]
+    for t in range(1, len(c)):  # sequential in time by definition; vectorised over vertices
+        c[t] = base[t] + TWO_PI * np.round((cos_turn[t - 1] * c[t - 1] - base[t]) / TWO_PI)
+    return w * c[..., None]
+
+
+def _lines(axis: np.ndarray, theta: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The line of every frame's representatives: unit axes ``w (T, n, 3)`` and the principal
+    signed angle along it ``(T, n)``; frame 0 is ``first (n, 3)`` itself (its norm along its
+    direction), and frames with no rotation take the previous frame's axis (their
+    representatives are 0 and the 2 pi k shells)."""
+    n_frames, n = theta.shape
+    small = theta <= NO_ROTATION
+    small[0] = False
+    norm0 = np.linalg.norm(first, axis=-1)
+    w = axis.copy()
+    w[0] = np.divide(first, norm0[:, None], out=np.tile([1.0, 0.0, 0.0], (n, 1)), where=norm0[:, None] > 0)
+    if small.any():  # identity frames take the previous axis
+        fill = np.maximum.accumulate(np.where(small, 0, np.arange(n_frames)[:, None]), axis=0)
+        w = np.take_along_axis(w, fill[..., None], axis=0)
+    base = np.where(small, 0.0, theta)
+    base[0] = norm0
+    return w, base
 
 
 def temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndarray:
@@ -189,15 +196,8 @@ def fewest_jumps(axis: np.ndarray, theta: np.ndarray, first: np.ndarray, reach: 
         ``(T, n, 3)`` rotation vectors.
     """
     n_frames, n = theta.shape
-    small = theta <= NO_ROTATION
-    small[0] = False
-    norm0 = np.linalg.norm(first, axis=-1)
-    w = axis.copy()
-    w[0] = np.divide(first, norm0[:, None], out=np.tile([1.0, 0.0, 0.0], (n, 1)), where=norm0[:, None] > 0)
-    fill = np.maximum.accumulate(np.where(small, 0, np.arange(n_frames)[:, None]), axis=0)
-    w = np.take_along_axis(w, fill[..., None], axis=0)  # identity frames take the previous axis
-    base = np.where(small, 0.0, theta)
-    base[0] = norm0
+    w, base = _lines(axis, theta, first)
+    norm0 = base[0]
     # rotation change per step, from the principal representatives (branch-independent)
     q = _unit_quaternions(w, base)
     free = 2.0 * np.arccos(np.clip(np.abs(np.einsum("tvc,tvc->tv", q[:-1], q[1:])), 0.0, 1.0)) >= JUMP_MOTION
