@@ -219,6 +219,7 @@ def write_markdown(summaries: dict, device: str, path: Path) -> None:
                   f"held-out frames {per_variant[next(iter(per_variant))]['range']}"
                   + (f" of each of its {len(seqs)} sequences ({', '.join(seqs)})" if seqs else "") + ".", ""]
         bd = per_variant.get("bd")
+        bd = bd if bd and len(bd["errors"]) > 1 else None  # None: ours only (--no-baselines)
         if bd:
             lines += target_rows(bd)
             lines += ["Table 2 (methods; ours = shared-weight BD-LSTM):", "",
@@ -287,6 +288,10 @@ def main() -> None:
                     help="one summary JSON per data set; the Markdown is made from every record here")
     ap.add_argument("--markdown-only", action="store_true",
                     help="train nothing: write --results from the records in --records")
+    ap.add_argument("--tag", default="",
+                    help="record and run folder NAME-TAG instead of NAME (e.g. Table 1 at another budget)")
+    ap.add_argument("--no-baselines", action="store_true",
+                    help="evaluate ours only (Table 1), also for bd: no baselines, completion or Fig. 3")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args()
     from meshseq.io import json_text
@@ -301,26 +306,28 @@ def main() -> None:
     img = Path(args.results).parent / "img"  # noqa: the Fig. 3 PNGs go beside the Markdown
     for name in [d.strip() for d in args.data.split(",") if d.strip()]:
         specs = dataset_specs(name, args)
-        results[name], runs[name] = {}, {}
+        key = f"{name}-{args.tag}" if args.tag else name
+        results[key], runs[key] = {}, {}
         for variant in [v.strip() for v in args.variants.split(",") if v.strip()]:
-            run = out / name / variant
+            run = out / key / variant
+            baselines = variant == "bd" and not args.no_baselines
             print(f"== {name} / {variant}: training {args.iterations} iterations -> {run}", flush=True)
-            runs[name][variant] = train_run(specs, name, run, variant, args)
+            runs[key][variant] = train_run(specs, name, run, variant, args)
             per_sequence = []
             for i, spec in enumerate(specs):
-                plots = run / "plots" if variant == "bd" and len(specs) == 1 else None
+                plots = run / "plots" if baselines and len(specs) == 1 else None
                 suffix = "" if len(specs) == 1 else "_" + spec.rsplit(":", 1)[-1]
                 per_sequence.append(evaluate_run(spec, run, run / f"evaluation{suffix}.json", plots, args,
-                                                 baselines=variant == "bd", iteration=runs[name][variant]["iteration"]))
-            r = results[name][variant] = combine_results(per_sequence)
-            if variant == "bd":
+                                                 baselines=baselines, iteration=runs[key][variant]["iteration"]))
+            r = results[key][variant] = combine_results(per_sequence)
+            if baselines:
                 img.mkdir(parents=True, exist_ok=True)
-                _feature_change_png(r, name, img / f"feature_change_{name}.png")
+                _feature_change_png(r, key, img / f"feature_change_{key}.png")
             config = {k: getattr(args, k) for k in ("iterations", "batch", "window", "stride", "latent")}
-            summary = json_text({"results": results[name], "runs": runs[name], "config": config,
+            summary = json_text({"results": results[key], "runs": runs[key], "config": config,
                                  "argv": args.argv, "recipe": args.recipe, "device": args.device}, indent=None)
-            (out / name / "summary.json").write_text(summary)
-            _write_text(Path(args.records) / f"{name}.json", summary)
+            (out / key / "summary.json").write_text(summary)
+            _write_text(Path(args.records) / f"{key}.json", summary)
             # after every run, from every data set recorded (also by earlier invocations)
             write_markdown(collect(Path(args.records)), args.device, Path(args.results))
     print(f"wrote {args.results}")
