@@ -17,8 +17,10 @@ from meshseq.train import (
     RECIPE_OPTIONS,
     RECIPES,
     TrainConfig,
+    WindowLoss,
     collapse_warning,
     latent_spread,
+    motion_loss,
     step_spread,
     train,
 )
@@ -295,3 +297,39 @@ def test_a_run_stored_before_fc_lr_existed_resumes_with_one_rate(tmp_path):
                 log=None)
     assert out["iteration"] == 4
     assert ckpt.load_folder(tmp_path / "run" / "checkpoints" / "00000004").meta["train"]["fc_lr"] == "none"
+
+
+def test_motion_loss_measures_the_size_of_each_generated_change_against_the_truth():
+    torch.manual_seed(0)
+    truth = torch.randn(3, 6, 5, 9)
+    true_speed = (truth[:, 1:] - truth[:, :-1]).square().sum((-2, -1)).sqrt()  # (3, 5)
+    same = {"forward": truth.clone(), "backward": truth.flip(1).clone()}
+    assert motion_loss(same, truth).item() < 1e-10
+    # a frozen chain misses every change by its full size; one moving as much in another
+    # direction (the negated changes) is not penalised: the term only sees the size
+    frozen = {"forward": truth[:, :1].expand_as(truth).clone(), "backward": None}
+    assert torch.isclose(motion_loss(frozen, truth), true_speed.square().mean())
+    mirrored = {"forward": 2 * truth[:, :1] - truth, "backward": None}
+    assert motion_loss(mirrored, truth).item() < 1e-8
+    chain = truth.clone().requires_grad_(True)
+    half = {"forward": truth[:, :1] + 0.5 * (chain - truth[:, :1]), "backward": None}
+    loss = motion_loss(half, truth)
+    assert loss.item() > 0
+    loss.backward()
+    assert torch.isfinite(chain.grad).all() and chain.grad.abs().sum() > 0
+
+
+def test_w_motion_adds_the_term_and_is_off_in_both_recipes():
+    assert RECIPES["paper"]["w_motion"] == 0.0 and RECIPES["default"]["w_motion"] == 0.0
+    seq, feats = limb()
+    model = small_model(seq)
+    windows = torch.as_tensor(feats[None, :8] / np.abs(feats).max() * 0.9, dtype=torch.float32)
+    cfg = dict(window=8, holdout=0.2)
+    torch.manual_seed(1)
+    total_off, terms_off = WindowLoss(model, TrainConfig(**cfg))(windows, sample=False)
+    torch.manual_seed(1)
+    total_on, terms_on = WindowLoss(model, TrainConfig(w_motion=2.0, **cfg))(windows, sample=False)
+    assert "motion" not in terms_off and terms_on["motion"] > 0
+    assert torch.isclose(total_on, total_off + 2.0 * terms_on["motion"])
+    with pytest.raises(MeshseqError, match="w_motion"):
+        TrainConfig(w_motion=-1.0)

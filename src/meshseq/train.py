@@ -9,6 +9,8 @@ The loss of a batch of ground-truth windows ``X`` ``(B, n, V, 9)`` (scaled featu
     L_2   = sum of squares of every weight matrix (biases excluded; tied weights counted once)
     L     = w_rec L_rec + w_bd L_bd + w_kl L_KL + w_l2 L_2      (paper 1, 0.5, 0.1, 0.1; default L_2 off)
 
+and, off unless ``w_motion > 0`` (not in the paper; see ``motion_loss``), ``+ w_motion L_motion``.
+
 The recipes (``RECIPES``: ``paper`` and ``default``) and why the default departs from the paper
 are documented beside ``RECIPES``.
 
@@ -70,7 +72,7 @@ FC_LRS = ("fan-in", "none")
 FC_REFERENCE_FAN_IN = 9000
 #: Fields added to TrainConfig after runs were stored without them: the value that reproduces
 #: those runs (TrainConfig.from_dict fills it in when a stored config lacks the field).
-LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none"}
+LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0}
 
 @dataclass
 class TrainConfig:
@@ -86,6 +88,7 @@ class TrainConfig:
     w_bd: float = 0.5
     w_kl: float = 0.1
     w_l2: float = 0.0  # the default recipe (RECIPES, below); the paper: 0.1
+    w_motion: float = 0.0  # L_motion (motion_loss): not in the paper; measured, not adopted
     holdout: float = 0.2
     holdout_at: str = "end"
     scaling: str = "two-group"
@@ -111,7 +114,7 @@ class TrainConfig:
         for name in ("eval_every", "checkpoint_every", "log_every"):
             if int(getattr(self, name)) < 0:
                 raise MeshseqError(f"--{name.replace('_', '-')} {getattr(self, name)}: expected >= 0")
-        for name in ("w_rec", "w_bd", "w_kl", "w_l2"):
+        for name in ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion"):
             if not float(getattr(self, name)) >= 0:
                 raise MeshseqError(f"loss weight {name}={getattr(self, name)} must be >= 0")
         if not float(self.lr) > 0:
@@ -167,9 +170,9 @@ class TrainConfig:
 #: Measured and left out: ``step_scale = "data"`` (decoder output in units of the RMS frame
 #: change) learns slower (held-out L_rec 6.5 against 4.3 at 600 iterations); a deterministic
 #: latent (no noise, no KL) changed little without the normalisation (864 against 834).
-RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "given", "step_scale", "input_norm", "fc_lr")
+RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "given", "step_scale", "input_norm", "fc_lr")
 RECIPES = {
-    "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "given": 1, "step_scale": "none",
+    "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "w_motion": 0.0, "given": 1, "step_scale": "none",
               "input_norm": False, "fc_lr": "none"},
     "default": {name: TrainConfig.__dataclass_fields__[name].default for name in RECIPE_OPTIONS},
 }
@@ -202,6 +205,24 @@ def window_losses(out: dict, windows: torch.Tensor) -> dict:
     return {"rec": rec, "bd": bd, "kl": kl, "latent_spread": latent_spread(out["mu"])}
 
 
+def motion_loss(out: dict, windows: torch.Tensor) -> torch.Tensor:
+    """L_motion: how far each generated frame-to-frame change is from the truth's in size,
+    ``mean_windows mean_{i=2..n} (||S_i - S_{i-1}|| - ||X_i - X_{i-1}||)^2`` over both chains.
+
+    Blind to the direction of the change, so it penalises a roll-out that slows down (the
+    squared-error optimum under phase uncertainty) without asking for the right phase.
+    """
+    def term(chain: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+        speed = (chain[:, 1:] - chain[:, :-1]).square().sum((-2, -1)).add(1e-12).sqrt()
+        true_speed = (truth[:, 1:] - truth[:, :-1]).square().sum((-2, -1)).sqrt()
+        return (speed - true_speed).square().mean()
+
+    loss = term(out["forward"], windows)
+    if out["backward"] is not None:
+        loss = loss + term(out["backward"], windows.flip(1))
+    return loss
+
+
 def latent_spread(mu: torch.Tensor) -> torch.Tensor:
     """How much the latent mean varies with the frame: the standard deviation of ``mu``
     ``(..., L)`` over all frames and chains, averaged over the latent dimensions (detached).
@@ -222,10 +243,14 @@ class WindowLoss(nn.Module):
     def __init__(self, model: BDLSTM, config: TrainConfig):
         super().__init__()
         self.model = model
-        self.weights = {"rec": config.w_rec, "bd": config.w_bd, "kl": config.w_kl, "l2": config.w_l2}
+        self.weights = {"rec": config.w_rec, "bd": config.w_bd, "kl": config.w_kl, "l2": config.w_l2,
+                        "motion": config.w_motion}
 
     def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1):
-        terms = window_losses(self.model(windows, sample=sample, given=given), windows)
+        out = self.model(windows, sample=sample, given=given)
+        terms = window_losses(out, windows)
+        if self.weights["motion"] > 0:
+            terms["motion"] = motion_loss(out, windows)
         terms["l2"] = sum(p.square().sum() for p in self.model.weight_parameters())
         total = sum(self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) != 0)
         return total, {k: v.detach() for k, v in terms.items()}
@@ -681,7 +706,7 @@ def train(
     t0 = time.perf_counter()
     collapse_warned = False
     params = list(model.parameters())
-    checked = [k for k in ("rec", "bd", "kl", "l2") if getattr(config, f"w_{k}") != 0]
+    checked = [k for k in ("rec", "bd", "kl", "l2", "motion") if getattr(config, f"w_{k}") != 0]
     checked_names = [f"the loss term {k}" for k in checked] + ["the total loss", "the gradient norm"]
     try:
         if bar is not None:

@@ -56,6 +56,9 @@ def register(sub) -> None:
     l.add_argument("--w-bd", type=float, default=None, help="weight of L_bd (ignored by --variant uni)")
     l.add_argument("--w-kl", type=float, default=None, help="weight of L_KL")
     l.add_argument("--w-l2", type=float, default=None, help="weight of L_2 (sum of squared weights)")
+    l.add_argument("--w-motion", type=float, default=None,
+                   help="weight of L_motion (generated frame-to-frame change vs the truth's, in size; "
+                   "not in the paper, off in both recipes)")
     l.add_argument("--given", type=int, default=None, help="teacher-forced first frames per chain: "
                    "each iteration draws 1..GIVEN (1 = the paper's free-running chains)")
     l.add_argument("--input-norm", action=argparse.BooleanOptionalAction, default=None,
