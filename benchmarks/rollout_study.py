@@ -7,8 +7,10 @@ protocol's first 80%, validated on the run's held-out block; the evaluation fram
   on average, over the ground truth's level (1.0 = moves like the data), with the latent's mean
   (``z = mu``, how meshseq predicts) and with ``z`` sampled from the VAE head;
 - ``completion``: the in-between error (x 1e-4, centroid-aligned) at gaps 5, 10 and 20 of the
-  stitched chains (meshseq's completion), of a crossfade of the two chains over the whole gap, and
-  of linear interpolation in ACAP space and in vertex space.
+  stitched chains (meshseq's completion), of a crossfade of the two chains over the whole gap, of
+  both after drift correction (each chain minus its miss of the far key, spread linearly over the
+  gap, so it ends exactly on that key), and of linear interpolation in ACAP space and in vertex
+  space.
 
     python benchmarks/rollout_study.py STUDY/b-default/checkpoints/00000600 --data bodies --bodies bodies1k.h5
 """
@@ -63,6 +65,21 @@ def motion_report(model, blocks, frames: int = 50) -> dict:
     return out
 
 
+def spread_stitch(fwd: np.ndarray, bwd: np.ndarray) -> np.ndarray:
+    """The chains joined where they agree best (as ``stitch_chains``), each bent to meet the
+    other's midpoint there by a correction growing linearly from its own key: no blend window."""
+    from meshseq.synthesize import stitch_chains
+
+    back = bwd[::-1]
+    n = len(fwd)
+    meet = stitch_chains(fwd, bwd)[1]
+    mid = 0.5 * (fwd[meet] + back[meet])
+    i = np.arange(n)[:, None, None]
+    f_c = fwd + np.clip(i / meet, 0, 1) * (mid - fwd[meet])
+    b_c = back + np.clip((n - 1 - i) / (n - 1 - meet), 0, 1) * (mid - back[meet])
+    return np.where(i <= meet, f_c, b_c)
+
+
 def completion_report(model, blocks, gaps=(5, 10, 20)) -> dict:
     """In-between errors x 1e-4 of stitched chains, a whole-gap crossfade, and linear baselines."""
     import torch
@@ -75,7 +92,8 @@ def completion_report(model, blocks, gaps=(5, 10, 20)) -> dict:
     for gap in gaps:
         n = gap + 2
         ramp = np.linspace(0.0, 1.0, n)[:, None, None]
-        errs = {k: [] for k in ("stitched", "crossfade", "linear_acap", "linear_vertices")}
+        errs = {k: [] for k in ("stitched", "spread", "crossfade", "corrected_stitched", "corrected_crossfade",
+                                "linear_acap", "linear_vertices")}
         for scaled, verts, (lo, hi), _ in blocks:
             for a in range(lo, hi - gap - 1):
                 b = a + gap + 1
@@ -85,7 +103,13 @@ def completion_report(model, blocks, gaps=(5, 10, 20)) -> dict:
                     chains, _, _, _ = model.net.rollout(torch.as_tensor(np.stack([scaled[a], scaled[b]])),
                                                         n - 1, (h, c), n_forward=1)
                 fwd, bwd = chains.cpu().numpy()
-                candidates = {"stitched": stitch_chains(fwd, bwd)[0], "crossfade": (1 - ramp) * fwd + ramp * bwd[::-1],
+                back = bwd[::-1]  # forward time order
+                fwd_c = fwd - ramp * (fwd[-1] - scaled[b])
+                back_c = back - (1 - ramp) * (back[0] - scaled[a])
+                candidates = {"stitched": stitch_chains(fwd, bwd)[0], "spread": spread_stitch(fwd, bwd),
+                              "crossfade": (1 - ramp) * fwd + ramp * back,
+                              "corrected_stitched": stitch_chains(fwd_c, back_c[::-1])[0],
+                              "corrected_crossfade": (1 - ramp) * fwd_c + ramp * back_c,
                               "linear_acap": baselines.linear_interpolation(scaled[a], scaled[b], gap)}
                 for key, feats in candidates.items():
                     feats = feats.copy()
