@@ -84,6 +84,41 @@ def test_completion_passes_exactly_through_keyframes_and_samples_differ(model, t
     assert np.array_equal(again.frames, many.frames)  # a seed reproduces
 
 
+def test_corrected_join_ends_on_both_keys_and_removes_a_chain_drift():
+    from meshseq.synthesize import corrected_crossfade
+
+    rng = np.random.default_rng(0)
+    truth = rng.normal(size=(9, 4, 9))  # 9 frames, key a = truth[0], key b = truth[-1]
+    # perfect chains give the truth back
+    assert np.allclose(corrected_crossfade(truth, truth[::-1]), truth)
+    # chains that drift linearly away from the truth (by a constant velocity) are corrected
+    drift = rng.normal(size=(4, 9)) * np.arange(9)[:, None, None]
+    fwd = truth + drift
+    bwd = (truth - drift[::-1])[::-1]  # the backward chain drifts from key b, in its own order
+    out = corrected_crossfade(fwd, bwd)
+    assert np.allclose(out, truth)
+    assert np.array_equal(out[0], truth[0]) and np.allclose(out[-1], truth[-1])
+    # the paper's stitch keeps the drift up to the meeting frame
+    from meshseq.synthesize import stitch_chains
+
+    assert np.abs(stitch_chains(fwd, bwd)[0] - truth).max() > 0.1
+
+
+def test_completion_joins_paper_stitch_and_corrected(model, trained):
+    from meshseq.errors import MeshseqError
+    from meshseq.synthesize import complete
+
+    keys = model.features(trained[2].vertices[[10, 24]])
+    ours = complete(model, keys[0], keys[1], 13)
+    paper = complete(model, keys[0], keys[1], 13, join="stitch")
+    assert not np.allclose(ours.frames, paper.frames)
+    assert np.array_equal(ours.stitch, paper.stitch)  # the raw chains' meeting frame either way
+    for comp in (ours, paper):
+        assert np.array_equal(comp.frames[0, 0], keys[0]) and np.array_equal(comp.frames[0, -1], keys[1])
+    with pytest.raises(MeshseqError, match="join"):
+        complete(model, keys[0], keys[1], 13, join="glue")
+
+
 def test_vertex_space_linear_completion_is_straight_lines_through_the_keys(model, trained):
     from meshseq.synthesize import complete_keyframes
 
@@ -150,7 +185,8 @@ def test_evaluate_command_writes_the_tables_json(trained, tmp_path, capsys):
                 for h, e in per_h.items():
                     assert r[key][m][u][h] == pytest.approx(e * 1e-4 / diag, rel=1e-9)
     assert len(r["feature_change"]["ours"]) == 10 and r["feature_change"]["ground_truth"] > 0
-    assert set(r["completion"]["3"]) >= {"ours", "cma", "linear", "linear_vertices", "diversity"}
+    assert set(r["completion"]["3"]) >= {"ours", "stitch", "cma", "linear", "linear_vertices", "diversity"}
+    assert r["completion"]["3"]["ours"] != r["completion"]["3"]["stitch"]  # two different joins
     # the vertex-space baseline: straight lines between the true keys, measured like the others
     lo, hi = r["range"]
     starts = np.arange(lo, hi - 3 - 1)

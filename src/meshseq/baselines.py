@@ -26,9 +26,11 @@ from meshseq.mesh import Topology
 from meshseq.model import BDLSTM, ModelConfig
 
 PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
-#: ``linear``: interpolation of the keys' ACAP features; ``linear_vertices``: straight lines
-#: between the keys' vertex positions.
-COMPLETION_METHODS = ("ours", "cma", "linear", "linear_vertices")
+#: ``ours``: the two chains joined by meshseq's default (``synthesize.corrected_crossfade``);
+#: ``stitch``: the same chains joined as in the paper (``synthesize.stitch_chains``); ``linear``:
+#: interpolation of the keys' ACAP features; ``linear_vertices``: straight lines between the keys'
+#: vertex positions.
+COMPLETION_METHODS = ("ours", "stitch", "cma", "linear", "linear_vertices")
 VAE_NOTE = "vae_latent: latent extrapolation of a mesh VAE on ACAP features, standing in for Tan et al. 2018"
 
 

@@ -132,8 +132,8 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
                     verts = baselines.linear_interpolation(vertices[a], vertices[b], gap)
                     errs[m].append(per_vertex_error(verts[1:-1], truth[1:-1]).mean() / UNITS)
                     continue
-                if m == "ours":
-                    f = complete(model, feats[a], feats[b], gap).frames[0]
+                if m in ("ours", "stitch"):
+                    f = complete(model, feats[a], feats[b], gap, join="corrected" if m == "ours" else "stitch").frames[0]
                 elif m == "cma":
                     f = complete_cma(model, feats[a], feats[b], gap, max_evals=cma_evals,
                                      max_seconds=cma_seconds, seed=seed).frames[0]

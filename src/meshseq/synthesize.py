@@ -6,8 +6,9 @@ numpy arrays, and return numpy arrays. Shapes: V vertices, 9 channels, U given f
 - ``predict``: feed U >= 1 given frames (warm-up: the state takes in frames 0..U-2 with the
   prediction discarded), then roll out free from frame U-1.
 - ``complete``: forward chain from key a and backward chain from key b (initial states +0.1 and
-  -0.1, or random ones for diversity), stitched where they agree best (method.md 3, **decision**:
-  at ``argmin_i ||S^f_i - S^b_{n+1-i}||`` over inner frames, with a short linear blend).
+  -0.1, or random ones for diversity), joined (``JOINS``): ``stitch``, the paper's, where they
+  agree best (method.md 3, **decision**: at ``argmin_i ||S^f_i - S^b_{n+1-i}||`` over inner
+  frames, with a short linear blend), or ``corrected`` (the default, see ``corrected_crossfade``).
 - ``complete_cma``: the optimisation baseline: the initial state of the forward chain optimised
   by CMA-ES so that the roll-out ends at key b.
 - ``assemble_vertices``: features -> vertices that pass exactly through given frames (keys).
@@ -129,9 +130,34 @@ def stitch_chains(forward: np.ndarray, backward: np.ndarray, blend: int = 2) -> 
     return out, meet, float(dist[meet])
 
 
+def corrected_crossfade(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
+    """Join two chains spanning the same frames: each chain minus its miss of the far key, spread
+    linearly over the gap (so it ends exactly on that key), then a linear crossfade of the two.
+
+    ``forward (n, V, C)``: ``forward[0]`` is key a; ``backward (n, V, C)`` in its own order,
+    ``backward[0]`` is key b. Returns ``(n, V, C)`` with ``[0]`` = key a and ``[-1]`` = key b.
+
+    Why (measured on the recipe study's validation blocks, never on evaluation frames,
+    ``benchmarks/rollout_study.py``; docs/results.md "Completion"): the chains slow down and drift
+    after a few steps, and the paper's stitch keeps that drift up to the meeting frame, then
+    closes the remaining distance in a 5-frame blend; on the body set at gap 10 the stitch was
+    1.13x linear interpolation and this join 0.92x.
+    """
+    n = len(forward)
+    ramp = np.linspace(0.0, 1.0, n)[:, None, None]
+    back = backward[::-1]  # forward time order: back[-1] = key b
+    fwd_c = forward - ramp * (forward[-1] - backward[0])
+    back_c = back - (1.0 - ramp) * (back[0] - forward[0])
+    return (1.0 - ramp) * fwd_c + ramp * back_c
+
+
+#: How ``complete`` joins its two chains: ``corrected`` (default) or ``stitch`` (the paper's).
+JOINS = ("corrected", "stitch")
+
+
 def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state: bool | None = None,
-             seed: int | None = None, blend: int = 2) -> Completion:
-    """Fill ``n_between`` frames between two keys with the two chains, stitched.
+             seed: int | None = None, blend: int = 2, join: str = "corrected") -> Completion:
+    """Fill ``n_between`` frames between two keys with the two chains, joined by ``join``.
 
     Args:
         key_a, key_b: ``(V, 9)`` scaled features of the keys.
@@ -140,7 +166,12 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
         random_state: draw initial states from U(-0.1, 0.1) (default: when ``samples > 1``);
             otherwise the trained states +0.1 (forward) and -0.1 (backward).
         seed: seed of those random states.
+        join: ``corrected`` (``corrected_crossfade``) or ``stitch`` (``stitch_chains`` with
+            ``blend``); ``stitch`` / ``gap`` of the result are the raw chains' meeting frame and
+            distance either way.
     """
+    if join not in JOINS:
+        raise MeshseqError(f"unknown join {join!r}; expected one of {', '.join(JOINS)}")
     if n_between < 0:
         raise MeshseqError(f"frames between keys must be >= 0, got {n_between}")
     random_state = samples > 1 if random_state is None else random_state
@@ -155,6 +186,8 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
     out, meets, gaps = [], [], []
     for s in range(samples):  # per sample: a few array ops, not per vertex
         f, meet, gap = stitch_chains(frames[s], frames[samples + s], blend)
+        if join == "corrected":
+            f = corrected_crossfade(frames[s], frames[samples + s])
         out.append(f)
         meets.append(meet)
         gaps.append(gap)
@@ -216,8 +249,9 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
     Args:
         key_vertices: ``(K, V, 3)`` keyframes; gaps: ``K - 1`` numbers of frames to generate
             between consecutive keys.
-        method: ``ours`` (stitched chains), ``cma`` (CMA-ES baseline), ``linear`` (ACAP
-            interpolation) or ``linear_vertices`` (straight lines between the keys' vertices).
+        method: ``ours`` (the chains, corrected and crossfaded), ``stitch`` (the chains stitched as
+            in the paper), ``cma`` (CMA-ES baseline), ``linear`` (ACAP interpolation) or
+            ``linear_vertices`` (straight lines between the keys' vertices).
         samples: completions from random initial states (``ours`` only; 1 = the trained states).
     Returns:
         ``(samples, K + sum(gaps), V, 3)`` vertices, exactly the keys at the key frames.
@@ -226,8 +260,8 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
 
     if method not in COMPLETION_METHODS:
         raise MeshseqError(f"unknown completion method {method!r}; expected one of {COMPLETION_METHODS}")
-    if samples > 1 and method != "ours":
-        raise MeshseqError(f"{samples} samples need the method 'ours'")
+    if samples > 1 and method not in ("ours", "stitch"):
+        raise MeshseqError(f"{samples} samples need the method 'ours' or 'stitch'")
     keys = np.asarray(key_vertices, dtype=np.float64)
     if method == "linear_vertices":
         parts = [linear_interpolation(keys[i], keys[i + 1], gap)[int(i > 0):] for i, gap in enumerate(gaps)]
@@ -237,9 +271,9 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
     for s in range(samples):
         parts, anchors, offset = [], {0: keys[0]}, 0
         for i, gap in enumerate(gaps):  # per gap; each completion is batched inside
-            if method == "ours":
+            if method in ("ours", "stitch"):
                 f = complete(model, key_f[i], key_f[i + 1], gap, random_state=samples > 1,
-                             seed=seed * 1000 + s * 97 + i).frames[0]
+                             seed=seed * 1000 + s * 97 + i, join="corrected" if method == "ours" else "stitch").frames[0]
             elif method == "cma":
                 f = complete_cma(model, key_f[i], key_f[i + 1], gap, max_evals=cma_evals,
                                  max_seconds=cma_seconds, seed=seed + i).frames[0]

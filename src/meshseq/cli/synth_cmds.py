@@ -41,7 +41,9 @@ def register(sub) -> None:
                    help="K completions from random initial states (default 1: the trained states)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
     p.add_argument("--method", choices=COMPLETION_METHODS, default="ours",
-                   help="ours (default), cma (CMA-ES over the forward chain's initial state), linear "
+                   help="ours (default: the two chains, each corrected to end on the far key, crossfaded), "
+                   "stitch (the same chains joined where they agree best, as in the paper), "
+                   "cma (CMA-ES over the forward chain's initial state), linear "
                    "(interpolation of ACAP features) or linear_vertices (straight lines between the keys' "
                    "vertices)")
     p.add_argument("--cma-evals", type=int, default=400, help="CMA-ES: at most this many roll-outs per gap")
@@ -229,8 +231,8 @@ def cmd_complete(args) -> int:
     if args.samples > 1 and Path(args.output).suffix:
         raise MeshseqError(f"-o {args.output}: with --samples > 1 the output is a folder (one file per "
                            "sample and diversity.json); give a path without an extension")
-    if args.method != "ours" and args.samples > 1:
-        raise MeshseqError(f"--samples {args.samples}: several samples need --method ours")
+    if args.method not in ("ours", "stitch") and args.samples > 1:
+        raise MeshseqError(f"--samples {args.samples}: several samples need --method ours or stitch")
     model, seq = _load(args)
     if keys[0] < 0 or keys[-1] >= seq.n_frames:
         raise MeshseqError(f"--keyframes {args.keyframes}: {args.data} has frames 0..{seq.n_frames - 1}")
@@ -310,7 +312,7 @@ def cmd_evaluate(args) -> int:
                                                        [m for m in methods if m != "zero_velocity"], vae)
     if gaps:
         result["completion"] = evaluate.completion_errors(
-            model, vertices, feats, lo, hi, gaps, ["ours", "cma", "linear", "linear_vertices"], samples=args.samples,
+            model, vertices, feats, lo, hi, gaps, ["ours", "stitch", "cma", "linear", "linear_vertices"], samples=args.samples,
             cma_evals=args.cma_evals, cma_seconds=args.cma_seconds)
     _print_tables(result, horizons)
     if args.json_out:
@@ -341,10 +343,11 @@ def _print_tables(result: dict, horizons: list[int]) -> None:
     if "completion" in result:
         table = Table(title="completion: in-between error x 1e-4 (and diversity of samples)")
         table.add_column("gap")
-        for col in ("ours", "cma", "linear", "linear_vertices", "diversity"):
+        cols = ("ours", "stitch", "cma", "linear", "linear_vertices", "diversity")
+        for col in cols:
             table.add_column(col, justify="right")
         for gap, r in result["completion"].items():
-            table.add_row(gap, *[f"{r[c]:.1f}" if c in r else "-" for c in ("ours", "cma", "linear", "linear_vertices", "diversity")])
+            table.add_row(gap, *[f"{r[c]:.1f}" if c in r else "-" for c in cols])
         console.print(table)
 
 
