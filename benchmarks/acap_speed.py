@@ -1,6 +1,7 @@
 """Benchmark: ACAP feature extraction and reconstruction speed on real data.
 
-Prints frames per second of extract and reconstruct (default least-squares and exact encoding) on
+Prints frames per second of extract (frame chunks on ``frame_threads()`` threads: one per CPU, or
+``MESHSEQ_THREADS``) and reconstruct (default least-squares and exact encoding) on
 ../shared/data/crane.npz (10002 vertices, 175 frames) or a file given as the first argument, next
 to this machine's limits measured in the same run: a large float64 matmul's GFLOP/s and a
 streaming copy's GB/s (the feature pipeline is memory-bound elementwise work on 3x3 matrices).
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from meshseq.acap import Reconstructor, extract
-from meshseq.acap.features import FRAME_CHUNK
+from meshseq.acap.features import FRAME_CHUNK, frame_threads
 from meshseq.align import per_vertex_error
 from meshseq.mesh import bounding_box_diagonal
 
@@ -53,7 +54,8 @@ def main() -> None:
     d = np.load(args.data)
     v, f = d["vertices"].astype(np.float64), d["faces"]
     t_frames, n_vertices = v.shape[:2]
-    print(f"data: {args.data}: {t_frames} frames, {n_vertices} vertices; frame chunk {FRAME_CHUNK}")
+    print(f"data: {args.data}: {t_frames} frames, {n_vertices} vertices; frame chunk {FRAME_CHUNK}, "
+          f"{frame_threads()} threads (MESHSEQ_THREADS)")
     gflops, gbs = machine_limits(args.repeat)
     print(f"machine: float64 matmul {gflops:.1f} GFLOP/s, streaming copy {gbs:.1f} GB/s")
     diag = bounding_box_diagonal(v)
