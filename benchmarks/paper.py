@@ -71,7 +71,7 @@ def dataset_specs(name: str, args) -> list[str]:
 
 def train_run(specs: list[str], name: str, run: Path, variant: str, args) -> dict:
     from meshseq.checkpoint import list_checkpoints
-    from meshseq.train import RECIPES, TrainConfig, load_training_data, train
+    from meshseq.train import RECIPE_OPTIONS, RECIPES, TrainConfig, load_training_data, train
 
     model_opts, weights = VARIANTS[variant]
     options = {**RECIPES[args.recipe], **weights}
@@ -88,7 +88,10 @@ def train_run(specs: list[str], name: str, run: Path, variant: str, args) -> dic
                          holdout=holdout, **options)
     out = train(data, run, config, model_options=dict(model_opts, latent=args.latent),
                 device=args.device, resume=bool(list_checkpoints(run)), progress=not args.quiet)
-    return {"seconds": training_seconds(run), "iteration": out["iteration"], "loss": out["loss"], "window": window}
+    newest = list_checkpoints(run)[-1]  # the options the run really trained with (a resume keeps its own)
+    stored = TrainConfig.from_dict(json.loads((newest / "model.json").read_text())["train"])
+    return {"seconds": training_seconds(run), "iteration": out["iteration"], "loss": out["loss"], "window": window,
+            "options": {k: getattr(stored, k) for k in RECIPE_OPTIONS}}
 
 
 def training_seconds(run: Path) -> float:
@@ -259,6 +262,14 @@ def target_status(summaries: dict) -> list[str]:
             "| target | data | iterations | measured | status |", "|---|---|---|---|---|", *rows, ""]
 
 
+def _options_text(runs: dict) -> str:
+    """The training options the runs stored (records made before they were kept: nothing)."""
+    opts = next((r["options"] for r in runs.values() if "options" in r), None)
+    if not opts:
+        return ""
+    return " (" + ", ".join(f"{k} {v}" for k, v in opts.items()) + ")"
+
+
 def _with_joins(completion: dict) -> dict:
     """A gap's completion figures with ``ours`` (the corrected join) and ``stitch`` (the paper's)
     as named; records made before the corrected join have only ``ours``, which was the stitch."""
@@ -295,7 +306,7 @@ def write_markdown(summaries: dict, device: str, path: Path) -> None:
         seqs = sorted(per_variant[next(iter(per_variant))].get("sequences", {}))
         lines += [f"## {name}", "",
                   f"Command: `python benchmarks/paper.py {' '.join(summ['argv'])}`. Recipe: "
-                  f"{summ.get('recipe', 'default')}. Iterations: {its}; "
+                  f"{summ.get('recipe', 'default')}{_options_text(runs)}. Iterations: {its}; "
                   f"{cfg['batch']} windows x {runs[next(iter(runs))].get('window', cfg['window'])} frames, "
                   f"stride {cfg['stride']}, latent {cfg['latent']}; "
                   f"held-out frames {per_variant[next(iter(per_variant))]['range']}"

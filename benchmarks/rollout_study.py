@@ -28,15 +28,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import recipe_study  # noqa: E402  (data_specs, development_data: the study's protocol)
 
 
-def validation_blocks(checkpoint: Path, data: list[str], bodies: str | None):
-    """``(model, [(scaled features, vertices, (lo, hi))])`` for every sequence of the run."""
+def validation_blocks(checkpoint: Path, data: list[str], bodies: str | None, part: str = "validation"):
+    """``(model, [(scaled features, vertices, (lo, hi), raw features)])`` for every sequence of
+    the run: its validation block, or with ``part="train"`` its (last) training segment."""
     import meshseq
     from meshseq.data.windows import Split
 
     full, verts = recipe_study.development_data(recipe_study.data_specs(data, bodies))
     model = meshseq.load(checkpoint)
     splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
-    blocks = [(model.scaling.apply(f).astype(np.float32), v, s.heldout, f)
+    blocks = [(model.scaling.apply(f).astype(np.float32), v, s.heldout if part == "validation" else s.train[-1], f)
               for f, v, s in zip(full.features, verts, splits)]
     return model, blocks
 
@@ -128,18 +129,23 @@ def main() -> None:
     ap.add_argument("--data", nargs="+", default=["bodies"])
     ap.add_argument("--bodies", default=None)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--part", choices=("validation", "train"), default="validation",
+                    help="motion from starts in the validation blocks (default) or in the training frames")
+    ap.add_argument("--motion-only", action="store_true", help="skip the completion report")
     ap.add_argument("--json", default=None, help="also write the figures here")
     args = ap.parse_args()
     import torch
 
     torch.set_num_threads(args.threads)
-    model, blocks = validation_blocks(Path(args.checkpoint), args.data, args.bodies)
+    model, blocks = validation_blocks(Path(args.checkpoint), args.data, args.bodies, args.part)
     motion = motion_report(model, blocks)
     steps = [0, 1, 2, 4, 7, 10, 15, 20, 30, 40, 49]
     for key in ("mu", "sampled"):
         curve = motion[key]["per_step"]
         print(f"motion / truth ({key}): mean {motion[key]['mean']:.3f}; at steps "
               + " ".join(f"{s + 1}:{curve[s]:.2f}" for s in steps))
+    if args.motion_only:
+        return
     completion = completion_report(model, blocks)
     for gap, r in completion.items():
         print(f"completion gap {gap} ({r['starts']} starts): " + ", ".join(

@@ -58,7 +58,7 @@ def register(sub) -> None:
     l.add_argument("--w-l2", type=float, default=None, help="weight of L_2 (sum of squared weights)")
     l.add_argument("--w-motion", type=float, default=None,
                    help="weight of L_motion (generated frame-to-frame change vs the truth's, in size; "
-                   "not in the paper, off in both recipes)")
+                   "not in the paper: 0 in its recipe, 10 in the default one)")
     l.add_argument("--given", type=int, default=None, help="teacher-forced first frames per chain: "
                    "each iteration draws 1..GIVEN (1 = the paper's free-running chains)")
     l.add_argument("--input-norm", action=argparse.BooleanOptionalAction, default=None,
