@@ -235,7 +235,8 @@ def target_status(summaries: dict) -> list[str]:
         for gap in ("10", "20"):
             if gap not in comp:
                 add(f"completion gap {gap}: below both linear interpolations, diversity > 0", name,
-                    "not evaluated", None, its)
+                    f"not evaluable: the held-out part {bd['range']} has fewer than {int(gap) + 2} frames"
+                    if bd["range"][1] - bd["range"][0] < int(gap) + 2 else "not evaluated", None, its)
                 continue
             c = _with_joins(comp[gap])
             lin = min(c["linear"], c.get("linear_vertices", float("inf")))
