@@ -87,7 +87,7 @@ def completion_report(model, blocks, gaps=(5, 10, 20)) -> dict:
 
     from meshseq import baselines
     from meshseq.align import per_vertex_error
-    from meshseq.synthesize import assemble_vertices, stitch_chains
+    from meshseq.synthesize import assemble_vertices, corrected_chains, corrected_crossfade, stitch_chains
 
     out = {}
     for gap in gaps:
@@ -105,12 +105,11 @@ def completion_report(model, blocks, gaps=(5, 10, 20)) -> dict:
                                                         n - 1, (h, c), n_forward=1)
                 fwd, bwd = chains.cpu().numpy()
                 back = bwd[::-1]  # forward time order
-                fwd_c = fwd - ramp * (fwd[-1] - scaled[b])
-                back_c = back - (1 - ramp) * (back[0] - scaled[a])
+                fwd_c, back_c = corrected_chains(fwd, bwd)
                 candidates = {"stitched": stitch_chains(fwd, bwd)[0], "spread": spread_stitch(fwd, bwd),
                               "crossfade": (1 - ramp) * fwd + ramp * back,
                               "corrected_stitched": stitch_chains(fwd_c, back_c[::-1])[0],
-                              "corrected_crossfade": (1 - ramp) * fwd_c + ramp * back_c,
+                              "corrected_crossfade": corrected_crossfade(fwd, bwd),
                               "linear_acap": baselines.linear_interpolation(scaled[a], scaled[b], gap)}
                 for key, feats in candidates.items():
                     feats = feats.copy()

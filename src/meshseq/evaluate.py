@@ -20,7 +20,7 @@ from meshseq import baselines
 from meshseq.align import per_vertex_error
 from meshseq.errors import MeshseqError
 from meshseq.plots import feature_change as relative_change
-from meshseq.synthesize import assemble_vertices, complete, complete_cma, predict
+from meshseq.synthesize import METHOD_JOINS, assemble_vertices, complete, complete_cma, predict
 
 UNITS = 1e-4  # errors are reported in the data's units x 1e-4 (paper's tables)
 
@@ -132,8 +132,8 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
                     verts = baselines.linear_interpolation(vertices[a], vertices[b], gap)
                     errs[m].append(per_vertex_error(verts[1:-1], truth[1:-1]).mean() / UNITS)
                     continue
-                if m in ("ours", "stitch"):
-                    f = complete(model, feats[a], feats[b], gap, join="corrected" if m == "ours" else "stitch").frames[0]
+                if m in METHOD_JOINS:
+                    f = complete(model, feats[a], feats[b], gap, join=METHOD_JOINS[m]).frames[0]
                 elif m == "cma":
                     f = complete_cma(model, feats[a], feats[b], gap, max_evals=cma_evals,
                                      max_seconds=cma_seconds, seed=seed).frames[0]

@@ -143,16 +143,25 @@ def corrected_crossfade(forward: np.ndarray, backward: np.ndarray) -> np.ndarray
     closes the remaining distance in a 5-frame blend; on the body set at gap 10 the stitch was
     1.13x linear interpolation and this join 0.92x.
     """
-    n = len(forward)
-    ramp = np.linspace(0.0, 1.0, n)[:, None, None]
+    fwd_c, back_c = corrected_chains(forward, backward)
+    ramp = np.linspace(0.0, 1.0, len(forward))[:, None, None]
+    return (1.0 - ramp) * fwd_c + ramp * back_c
+
+
+def corrected_chains(forward: np.ndarray, backward: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Both chains ``(n, V, C)`` in forward time order, each minus its miss of the far key spread
+    linearly over the gap: ``[0]`` of the backward one is key a, ``[-1]`` of the forward one key b."""
+    ramp = np.linspace(0.0, 1.0, len(forward))[:, None, None]
     back = backward[::-1]  # forward time order: back[-1] = key b
     fwd_c = forward - ramp * (forward[-1] - backward[0])
     back_c = back - (1.0 - ramp) * (back[0] - forward[0])
-    return (1.0 - ramp) * fwd_c + ramp * back_c
+    return fwd_c, back_c
 
 
 #: How ``complete`` joins its two chains: ``corrected`` (default) or ``stitch`` (the paper's).
 JOINS = ("corrected", "stitch")
+#: The completion methods made of the two chains (``baselines.COMPLETION_METHODS``) and their join.
+METHOD_JOINS = {"ours": "corrected", "stitch": "stitch"}
 
 
 def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state: bool | None = None,
@@ -260,7 +269,7 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
 
     if method not in COMPLETION_METHODS:
         raise MeshseqError(f"unknown completion method {method!r}; expected one of {COMPLETION_METHODS}")
-    if samples > 1 and method not in ("ours", "stitch"):
+    if samples > 1 and method not in METHOD_JOINS:
         raise MeshseqError(f"{samples} samples need the method 'ours' or 'stitch'")
     keys = np.asarray(key_vertices, dtype=np.float64)
     if method == "linear_vertices":
@@ -271,9 +280,9 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
     for s in range(samples):
         parts, anchors, offset = [], {0: keys[0]}, 0
         for i, gap in enumerate(gaps):  # per gap; each completion is batched inside
-            if method in ("ours", "stitch"):
+            if method in METHOD_JOINS:
                 f = complete(model, key_f[i], key_f[i + 1], gap, random_state=samples > 1,
-                             seed=seed * 1000 + s * 97 + i, join="corrected" if method == "ours" else "stitch").frames[0]
+                             seed=seed * 1000 + s * 97 + i, join=METHOD_JOINS[method]).frames[0]
             elif method == "cma":
                 f = complete_cma(model, key_f[i], key_f[i + 1], gap, max_evals=cma_evals,
                                  max_seconds=cma_seconds, seed=seed + i).frames[0]

@@ -223,14 +223,13 @@ def motion_loss(out: dict, windows: torch.Tensor) -> torch.Tensor:
     Blind to the direction of the change, so it penalises a roll-out that slows down (the
     squared-error optimum under phase uncertainty) without asking for the right phase.
     """
-    def term(chain: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
-        speed = (chain[:, 1:] - chain[:, :-1]).square().sum((-2, -1)).add(1e-12).sqrt()
-        true_speed = (truth[:, 1:] - truth[:, :-1]).square().sum((-2, -1)).sqrt()
-        return (speed - true_speed).square().mean()
+    def speed(frames: torch.Tensor) -> torch.Tensor:  # (B, n, V, C) -> (B, n - 1)
+        return (frames[:, 1:] - frames[:, :-1]).square().sum((-2, -1))
 
-    loss = term(out["forward"], windows)
+    true_speed = speed(windows).sqrt()  # the backward chain's truth runs in reverse: flip (B, n - 1)
+    loss = (speed(out["forward"]).add(1e-12).sqrt() - true_speed).square().mean()
     if out["backward"] is not None:
-        loss = loss + term(out["backward"], windows.flip(1))
+        loss = loss + (speed(out["backward"]).add(1e-12).sqrt() - true_speed.flip(1)).square().mean()
     return loss
 
 

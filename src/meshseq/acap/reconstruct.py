@@ -86,9 +86,7 @@ class Reconstructor:
         self.edge_weights = w
         self.laplacian = _laplacian(e, w, n)
         self.pinned = topo.component_roots
-        free = np.ones(n, dtype=bool)
-        free[self.pinned] = False
-        self.free = np.flatnonzero(free)
+        self.free = _free_vertices(topo)
         self._factor = FactoredMatrix(self.laplacian[self.free][:, self.free])
         self.rhs_operator = _rhs_operator(q, e, w, n)  # (V, 3V)
         self.reference_offsets = component_offsets(q[None], topo)[0]  # (C, 3)
@@ -186,9 +184,7 @@ class ExactEncoder:
         w = cotangent_weights(q, topology) if weights is None else np.asarray(weights, dtype=np.float64)
         self.laplacian = _laplacian(topology.edges, w, n)
         self.rhs_operator = _rhs_operator(q, topology.edges, w, n)  # (V, 3V)
-        free = np.ones(n, dtype=bool)
-        free[topology.component_roots] = False
-        self.free = np.flatnonzero(free)
+        self.free = _free_vertices(topology)
         bbt = (self.rhs_operator @ self.rhs_operator.T).tocsr()
         self._factor = FactoredMatrix(bbt[self.free][:, self.free])
 
@@ -204,6 +200,13 @@ class ExactEncoder:
         y[self.free] = self._factor.solve(residual[self.free])
         dt = (self.rhs_operator.T @ y).reshape(n, 3, t, 3).transpose(2, 0, 3, 1)  # (T, V, a, c)
         return g + dt
+
+
+def _free_vertices(topology: Topology) -> np.ndarray:
+    """Indices of every vertex but one pinned per connected component (the solves' unknowns)."""
+    free = np.ones(topology.n_vertices, dtype=bool)
+    free[topology.component_roots] = False
+    return np.flatnonzero(free)
 
 
 def _laplacian(edges: np.ndarray, w: np.ndarray, n: int) -> sp.csr_matrix:

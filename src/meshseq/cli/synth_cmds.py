@@ -231,7 +231,7 @@ def cmd_complete(args) -> int:
     if args.samples > 1 and Path(args.output).suffix:
         raise MeshseqError(f"-o {args.output}: with --samples > 1 the output is a folder (one file per "
                            "sample and diversity.json); give a path without an extension")
-    if args.method not in ("ours", "stitch") and args.samples > 1:
+    if args.method not in synthesize.METHOD_JOINS and args.samples > 1:
         raise MeshseqError(f"--samples {args.samples}: several samples need --method ours or stitch")
     model, seq = _load(args)
     if keys[0] < 0 or keys[-1] >= seq.n_frames:
@@ -312,7 +312,7 @@ def cmd_evaluate(args) -> int:
                                                        [m for m in methods if m != "zero_velocity"], vae)
     if gaps:
         result["completion"] = evaluate.completion_errors(
-            model, vertices, feats, lo, hi, gaps, ["ours", "stitch", "cma", "linear", "linear_vertices"], samples=args.samples,
+            model, vertices, feats, lo, hi, gaps, list(baselines.COMPLETION_METHODS), samples=args.samples,
             cma_evals=args.cma_evals, cma_seconds=args.cma_seconds)
     _print_tables(result, horizons)
     if args.json_out:
