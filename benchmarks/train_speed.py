@@ -48,7 +48,8 @@ from meshseq import acap
 from meshseq.data.windows import WindowSampler, split_frames
 from meshseq.io import load_sequence
 from meshseq.mesh import Topology
-from meshseq.kernels import keep_freed_memory, ring_mean
+from meshseq import kernels
+from meshseq.kernels import MeshConvFused, keep_freed_memory, ring_mean
 from meshseq.model import BDLSTM, ModelConfig, NeighborMean, count_step_flops
 from meshseq.train import TrainConfig, WindowLoss, autocast, resolve_device
 
@@ -113,10 +114,13 @@ def subdivide(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, int]:
 
 
 def ring_benchmark(topo, device, rows=16, repeat=20) -> dict:
+    """Milliseconds of the 1-ring mean (forward + backward) by sparse matrix, by padded gather and by
+    ``embedding_bag`` (forward + transpose), and of one fused conv layer (forward + backward) with
+    the C++ CPU kernel and with the torch-op path, on vertex-major ``(V, 9, rows)``."""
     out = {}
     for impl in ("sparse", "gather"):
         ring = NeighborMean(topo, impl).to(device)
-        x = torch.randn(9, topo.n_vertices, rows, device=device, requires_grad=True)  # (C, V, B)
+        x = torch.randn(topo.n_vertices, 9, rows, device=device, requires_grad=True)  # (V, C, B)
 
         def fwd_bwd():
             ring(x).square().sum().backward()
@@ -127,6 +131,23 @@ def ring_benchmark(topo, device, rows=16, repeat=20) -> dict:
             z = x.detach()
             out["embedding_bag"] = statistics.median(timed(
                 lambda: (ring_mean(ring, z), ring_mean(ring, z, transpose=True)), device, repeat)) * 1e3
+            w = [torch.randn(9, 9, device=device, requires_grad=True) * 0.3 for _ in range(2)]
+            bias, gy = torch.zeros(9, device=device, requires_grad=True), torch.randn_like(z)
+
+            def layer():
+                y = MeshConvFused.apply(x, w[0], w[1], bias, ring, True, None)
+                torch.autograd.grad(y, [x, bias], gy)
+
+            paths = {"torch-op": False}
+            if device.type == "cpu" and kernels.cpu_kernels_available():
+                paths = {"C++": True, "torch-op": False}
+            for name, cpp in paths.items():
+                saved, kernels._cpu_kernels = kernels._cpu_kernels, cpp if cpp else False
+                try:
+                    layer()
+                    out[f"fused layer, {name}"] = statistics.median(timed(layer, device, repeat)) * 1e3
+                finally:
+                    kernels._cpu_kernels = saved
     return out
 
 
@@ -246,7 +267,8 @@ def main() -> None:
     print(f"float32 matmul 4096^3: {peak:.1f} GFLOP/s (this machine's practical limit)")
     print(f"memory bandwidth (256 MiB copy, read + write): {bw:.1f} GB/s")
     ring = ring_benchmark(topo, device, rows=2 * args.batch)
-    print("1-ring mean, forward+backward on (9, V, 16): " + ", ".join(f"{k} {v:.2f} ms" for k, v in ring.items()))
+    print(f"ring mean and fused layer, forward+backward on (V, 9, {2 * args.batch}): "
+          + ", ".join(f"{k} {v:.2f} ms" for k, v in ring.items()))
 
     steps, rows = args.window - 1, 2 * args.batch
     results = {"device": str(device), "threads": torch.get_num_threads(), "matmul_gflops": peak,

@@ -28,14 +28,14 @@ def make(topo, variant="bd", conv="sparse", latent=16, layers=2, seed=0):
 
 
 def ring_mean_reference(x: np.ndarray, topo: Topology) -> np.ndarray:
-    """Brute-force 1-ring mean of channel-major ``(C, V, ...)`` from the adjacency lists."""
-    return np.stack([x[:, list(r)].mean(1) for r in topo.adjacency.tolil().rows], 1)
+    """Brute-force 1-ring mean of vertex-major ``(V, ...)`` from the adjacency lists."""
+    return np.stack([x[list(r)].mean(0) for r in topo.adjacency.tolil().rows])
 
 
 @pytest.mark.parametrize("impl", ["sparse", "gather"])
 def test_neighbor_mean_matches_brute_force_and_gradients_agree(limb, impl):
-    x = torch.randn(5, limb.n_vertices, 3, dtype=torch.float32, requires_grad=True)  # (C, V, B)
-    ring = NeighborMean(limb, impl, channels=5)
+    x = torch.randn(limb.n_vertices, 5, 3, dtype=torch.float32, requires_grad=True)  # (V, C, B)
+    ring = NeighborMean(limb, impl)
     y = ring(x)
     np.testing.assert_allclose(y.detach().numpy(), ring_mean_reference(x.detach().numpy(), limb), atol=1e-6)
     # backward = transpose of the mean operator: <A x, g> = <x, A^T g>
@@ -43,23 +43,23 @@ def test_neighbor_mean_matches_brute_force_and_gradients_agree(limb, impl):
     (gx,) = torch.autograd.grad(y, x, g)
     adj = limb.adjacency.toarray()
     A = torch.from_numpy(adj / adj.sum(1, keepdims=True)).float()
-    torch.testing.assert_close(gx, torch.einsum("vw,cvb->cwb", A, g), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(gx, torch.einsum("vw,vcb->wcb", A, g), atol=1e-5, rtol=1e-5)
 
 
 def test_mesh_conv_is_paper_eq2(limb):
     ring = NeighborMean(limb, "sparse")
     conv = MeshConv(9, 9, ring)
-    x = torch.randn(9, limb.n_vertices, 2)  # channel-major (C, V, B)
+    x = torch.randn(limb.n_vertices, 9, 2)  # vertex-major (V, C, B)
     W1, W2 = conv.weight[:9].detach(), conv.weight[9:].detach()
     ring_x = torch.from_numpy(ring_mean_reference(x.numpy(), limb)).float()
     with torch.no_grad():
         conv.bias.uniform_()
         # per vertex: y_i = W1^T x_i + W2^T mean_ring(x)_i + b (the paper's Eq. 2, column vectors)
-        xr, rr = x.permute(1, 2, 0), ring_x.permute(1, 2, 0)  # (V, B, C) rows
-        expected = (xr @ W1 + rr @ W2 + conv.bias).permute(2, 0, 1)
+        xr, rr = x.permute(0, 2, 1), ring_x.permute(0, 2, 1)  # (V, B, C) rows
+        expected = (xr @ W1 + rr @ W2 + conv.bias).permute(0, 2, 1)
         torch.testing.assert_close(conv(x), expected, atol=1e-5, rtol=1e-5)
         b = torch.randn(9)
-        expected = (xr @ W1.t() + rr @ W2.t() + b).permute(2, 0, 1)
+        expected = (xr @ W1.t() + rr @ W2.t() + b).permute(0, 2, 1)
         torch.testing.assert_close(conv(x, transpose=True, bias=b), expected, atol=1e-5, rtol=1e-5)
 
 
@@ -71,12 +71,12 @@ def test_fc_weight_gradient_summed_over_time_equals_plain_autograd(limb):
     def grads(deferred):
         m.zero_grad()
         fc = m._fc_ops(deferred=deferred)
-        x = w[:, 0].permute(2, 1, 0).contiguous()
+        x = w[:, 0].permute(1, 2, 0).contiguous()
         state = m.initial_state(2)
         total = 0
         for t in range(1, 5):
-            state, x, mu, _ = m._step_cm(state, x, fc, False, None)
-            total = total + (x - w[:, t].permute(2, 1, 0)).square().sum() + mu.square().sum()
+            state, x, mu, _ = m._step_vm(state, x, fc, False, None)
+            total = total + (x - w[:, t].permute(1, 2, 0)).square().sum() + mu.square().sum()
         (total + m.fc.weight.square().sum()).backward()
         return {n: p.grad.clone() for n, p in m.named_parameters() if p.grad is not None}
 
@@ -206,7 +206,7 @@ def test_flop_count_formulas(limb):
 
 
 def test_encode_decode_match_a_plain_batch_major_reference(limb):
-    """The channel-major internals compute exactly the documented network on (B, V, 9) frames."""
+    """The vertex-major internals compute exactly the documented network on (B, V, 9) frames."""
     m = make(limb)
     with torch.no_grad():
         for p in m.parameters():
@@ -242,14 +242,14 @@ def _reference_rollout(m, first, steps, state, n_forward):
     """The plain step-by-step roll-out: ``MeshConv.forward`` per layer, per-step FC autograd."""
     fc = m._fc_ops(deferred=False, fused=False)
     assert not fc.fused
-    x = first.permute(2, 1, 0)
+    x = first.permute(1, 2, 0)
     frames, mus, logvars = [x], [], []
     for _ in range(steps):
-        state, x, mu, logvar = m._step_cm(state, x, fc, True, n_forward)
+        state, x, mu, logvar = m._step_vm(state, x, fc, True, n_forward)
         frames.append(x)
         mus.append(mu)
         logvars.append(logvar)
-    return torch.stack(frames).permute(3, 0, 2, 1), torch.stack(mus), torch.stack(logvars), state
+    return torch.stack(frames).permute(3, 0, 1, 2), torch.stack(mus), torch.stack(logvars), state
 
 
 def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch):

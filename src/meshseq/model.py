@@ -33,9 +33,13 @@ Variants (``ModelConfig.variant``):
 
 Mesh convolution (paper Eq. 2): ``y_i = W1 x_i + W2 mean_{j in N(i)} x_j + b``, the 1-ring mean
 by a padded gather (``conv_impl="gather"``) or a row-normalised sparse matrix (``"sparse"``).
-``MeshConv.forward`` is the readable reference; with ``"sparse"``, ``rollout`` runs every conv
-layer as ``meshseq.kernels.MeshConvFused`` (the fast path: one fused layer with a hand-written
-backward; see that module), equal to the reference to float32 rounding.
+``MeshConv.forward`` is the readable reference; ``rollout`` runs every conv layer as
+``meshseq.kernels.MeshConvFused`` (the fast path: one fused layer with a hand-written backward,
+a C++ kernel on CPU; see that module), equal to the reference to float32 rounding.
+
+Layout: inside, frames are vertex-major ``(V, C, B)`` (vertex, channel, window): a vertex's
+channels of all windows are one contiguous block (what the ring mean gathers), and the flattened
+``(V*C, B)`` view is the big FC's input in the order of its weight's columns.
 """
 
 from __future__ import annotations
@@ -190,58 +194,44 @@ class _SparseMean(torch.autograd.Function):
 
 
 class NeighborMean(nn.Module):
-    """The 1-ring mean ``(1/d_i) sum_{j in N(i)} x_j`` of channel-major tensors ``(C, V, ...)``.
+    """The 1-ring mean ``(1/d_i) sum_{j in N(i)} x_j`` of vertex-major tensors ``(V, ...)``.
 
-    ``impl="sparse"``: the row-normalised adjacency ``A`` ``(V, V)``, block-diagonal over the
-    ``channels`` (``I_C (x) A``, CSR), times the ``(C*V, N)`` view; ``impl="gather"``: a padded
-    ``(V, D)`` index table (D the largest degree) and weights ``mask / d`` (work ``C V D N``).
-    Isolated vertices (degree 0) get 0. ``"sparse"`` also keeps the ``(V, V)`` operator and its
-    transpose as embedding-bag lists (``bag_*``, ``bag_t_*``) for ``kernels.ring_mean``.
+    Keeps the row-normalised adjacency ``A`` ``(V, V)`` and its transpose as CSR tensors (the
+    fused kernels read their index lists). ``impl`` chooses the reference's ``forward``:
+    ``"sparse"``, ``A @ x`` on the ``(V, rest)`` view; ``"gather"``, a padded ``(V, D)`` index table
+    (D the largest degree) and weights ``mask / d``. Isolated vertices (degree 0) get 0.
     """
 
-    def __init__(self, topology: Topology, impl: str = "sparse", channels: int = 9):
+    def __init__(self, topology: Topology, impl: str = "sparse"):
         super().__init__()
         if impl not in CONV_IMPLS:
             raise MeshseqError(f"--conv {impl!r}: expected one of {', '.join(CONV_IMPLS)}")
         self.impl = impl
         self.n_vertices = topology.n_vertices
-        self.channels = channels
         deg = np.maximum(topology.degrees, 1).astype(np.float64)
+        import scipy.sparse as sp
+
+        A = (sp.diags(1.0 / deg) @ topology.adjacency).tocsr()
+        self.register_buffer("A", _csr(A), persistent=False)
+        self.register_buffer("At", _csr(A.T.tocsr()), persistent=False)
         if impl == "gather":
             index, mask = topology.padded_neighbors()
-            weight = mask / deg[:, None]
             self.register_buffer("index", torch.from_numpy(index.reshape(-1)).long(), persistent=False)
-            self.register_buffer("weight", torch.from_numpy(weight).float(), persistent=False)
+            self.register_buffer("weight", torch.from_numpy(mask / deg[:, None]).float(), persistent=False)
             self.width = index.shape[1]
-        else:
-            import scipy.sparse as sp
-
-            A = sp.diags(1.0 / deg) @ topology.adjacency
-            big = sp.kron(sp.identity(channels, format="csr"), A, format="csr")
-            self.register_buffer("A", _csr(big), persistent=False)
-            self.register_buffer("At", _csr(big.T.tocsr()), persistent=False)
-            # the (V, V) operator and its transpose as embedding-bag lists (kernels.ring_mean)
-            for name, m in (("bag", A.tocsr()), ("bag_t", A.T.tocsr())):
-                m.sort_indices()
-                self.register_buffer(f"{name}_index", torch.from_numpy(m.indices.astype(np.int64)), persistent=False)
-                self.register_buffer(f"{name}_offsets", torch.from_numpy(m.indptr[:-1].astype(np.int64)),
-                                     persistent=False)
-                self.register_buffer(f"{name}_weight", torch.from_numpy(m.data).float(), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """``x`` ``(C, V, ...)`` -> ``(C, V, ...)``."""
-        C, V = x.shape[:2]
+        """``x`` ``(V, ...)`` -> ``(V, ...)``."""
+        V = x.shape[0]
+        cols = x.reshape(V, -1)
         if self.impl == "gather":
-            xv = x.reshape(C, V, -1)
-            g = xv.index_select(1, self.index).view(C, V, self.width, -1)
-            return torch.einsum("cvdn,vd->cvn", g, self.weight).view(x.shape)
-        if C != self.channels:
-            raise ValueError(f"NeighborMean(sparse) was built for {self.channels} channels, got {C}")
-        return _SparseMean.apply(x.reshape(C * V, -1), self.A, self.At).view(x.shape)
+            g = cols.index_select(0, self.index).view(V, self.width, -1)
+            return torch.einsum("vdn,vd->vn", g, self.weight).view(x.shape)
+        return _SparseMean.apply(cols, self.A, self.At).view(x.shape)
 
 
 class MeshConv(nn.Module):
-    """Paper Eq. 2 on channel-major ``(C_in, V, ...)`` -> ``(C_out, V, ...)``.
+    """Paper Eq. 2 on vertex-major ``(V, C_in, ...)`` -> ``(V, C_out, ...)``.
 
     Per vertex ``y_i = W1^T x_i + W2^T mean_ring(x)_i + b`` (``weight = [W1; W2]``,
     ``(2 C_in, C_out)``). ``forward(x, transpose=True, bias=b)`` applies the layer's weights
@@ -257,40 +247,27 @@ class MeshConv(nn.Module):
         self.c_in, self.c_out = c_in, c_out
 
     def forward(self, x: torch.Tensor, transpose: bool = False, bias: torch.Tensor | None = None):
-        w1, w2 = self.weight[: self.c_in], self.weight[self.c_in :]
-        if not transpose:  # channel-major: y = W^T x
+        w1, w2 = self.weight[: self.c_in], self.weight[self.c_in :]  # (C_in, C_out) each
+        if not transpose:  # y = W^T x per vertex
             w1, w2 = w1.t(), w2.t()
         b = self.bias if bias is None else bias
-        cols = x.reshape(x.shape[0], -1)  # (C_in, V*B)
-        c = w1.shape[0]
-        out_shape = (c,) + tuple(x.shape[1:])
-        # mean_ring(x) W2 == mean_ring(x W2): apply the (linear) ring mean after the channel map;
-        # both channel maps in one matmul, [W1^T; W2^T] x, whose two halves are contiguous.
-        both = torch.addmm(torch.cat([b, b.new_zeros(c)])[:, None], torch.cat([w1, w2]), cols)
-        return both[:c].view(out_shape) + self.ring(both[c:].view(out_shape))
+        cols = x.reshape(x.shape[0], x.shape[1], -1)  # (V, C_in, N)
+        y = torch.einsum("oc,vcn->von", w1, cols) + torch.einsum("oc,vcn->von", w2, self.ring(cols))
+        return (y + b[:, None]).view((x.shape[0], w1.shape[0]) + tuple(x.shape[2:]))
 
 
 # --------------------------------------------------------------------------------------------
 # the big FC layer, with its weight gradient summed over time in one matmul
 #
 # The parameter ``fc.weight`` is ``(L, V*C)`` with columns in vertex-major order (vertex v,
-# channel c at v*C + c) and ``dec_fc_bias`` is ``(V*C,)`` likewise; a roll-out works with their
-# channel-major copies (column c*V + v), made once per roll-out.
-
-
-def _to_channel_major(w: torch.Tensor, V: int, C: int) -> torch.Tensor:
-    """``(..., V*C)`` vertex-major columns -> ``(..., C*V)`` channel-major (a copy)."""
-    return w.reshape(*w.shape[:-1], V, C).transpose(-1, -2).reshape(*w.shape[:-1], C * V)
-
-
-def _to_vertex_major(w: torch.Tensor, V: int, C: int) -> torch.Tensor:
-    return w.reshape(*w.shape[:-1], C, V).transpose(-1, -2).reshape(*w.shape[:-1], V * C)
+# channel c at v*C + c), the order of the roll-out's flattened ``(V*C, B)`` frames; likewise
+# ``dec_fc_bias`` ``(V*C,)``.
 
 
 class _GradBank:
     """Pairs ``(left (B, L), right (N, B))`` whose products ``(right left)^T`` sum to a weight gradient.
 
-    ``right`` is kept as the ``(N, B)`` channel-major frame it is (no transposing copy per step);
+    ``right`` is kept as the ``(N, B)`` frame it is (no transposing copy per step);
     the sum is ``(R L)^T`` with ``R = [right_1 ... right_T]`` ``(N, T B)`` (one 64-byte-row copy)."""
 
     def __init__(self):
@@ -307,7 +284,7 @@ class _GradBank:
 
 
 class _WeightGate(torch.autograd.Function):
-    """The FC weight, channel-major, for one roll-out; its backward hands over the collected gradient.
+    """The FC weight for one roll-out; its backward hands over the collected gradient.
 
     The steps' ``_Encode``/``_Decode`` nodes give it no gradient; they store their (input,
     output gradient) pairs in the bank instead, and this node (which autograd runs after all of
@@ -316,21 +293,21 @@ class _WeightGate(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, weight, bank, V, C):
+    def forward(ctx, weight, bank):
         ctx.set_materialize_grads(False)
-        ctx.bank, ctx.V, ctx.C = bank, V, C
-        return _to_channel_major(weight, V, C)
+        ctx.bank = bank
+        return weight.view_as(weight)
 
     @staticmethod
     def backward(ctx, grad):
         g = ctx.bank.gradient()
         if grad is not None:
             g = grad if g is None else g + grad
-        return (None if g is None else _to_vertex_major(g, ctx.V, ctx.C)), None, None, None
+        return g, None
 
 
 class _Encode(torch.autograd.Function):
-    """``e = x^T W^T + b``: x ``(N, B)`` (channel-major frames), W ``(L, N)`` -> ``(B, L)``.
+    """``e = x^T W^T + b``: x ``(N, B)`` (flattened frames), W ``(L, N)`` -> ``(B, L)``.
 
     ``weight`` may be a low-precision (bfloat16) copy: the products then run in that precision
     and the results come back in ``x``'s dtype (float32).
@@ -351,7 +328,7 @@ class _Encode(torch.autograd.Function):
 
 
 class _Decode(torch.autograd.Function):
-    """``y = W^T h^T + b``: h ``(B, L)``, W ``(L, N)`` -> ``(N, B)`` (channel-major frames)."""
+    """``y = W^T h^T + b``: h ``(B, L)``, W ``(L, N)`` -> ``(N, B)`` (flattened frames)."""
 
     @staticmethod
     def forward(ctx, h, weight, bias, bank):
@@ -369,19 +346,18 @@ class _Decode(torch.autograd.Function):
 
 
 class _FC:
-    """The big FC weight (and decoder bias) of one roll-out in channel-major form; with
-    ``deferred`` (training) its weight gradient is formed once, after all steps.
+    """The big FC weight (and decoder bias) of one roll-out; with ``deferred`` (training) its
+    weight gradient is formed once, after all steps.
 
-    ``fused``: the roll-out's conv layers run as ``kernels.MeshConvFused`` (the fast path; sparse
-    ring mean only), with the channel maps of every encoder and decoder layer sliced from the
-    parameters once per roll-out; otherwise ``MeshConv.forward`` (the reference).
+    ``fused``: the roll-out's conv layers run as ``kernels.MeshConvFused`` (the fast path), with
+    the channel maps of every encoder and decoder layer sliced from the parameters once per
+    roll-out; otherwise ``MeshConv.forward`` (the reference).
     """
 
     def __init__(self, model: "BDLSTM", deferred: bool, fused: bool = False):
-        V, C = model.config.n_vertices, model.config.channels
-        self.fused = fused and model.ring.impl == "sparse"
+        self.fused = fused
         if self.fused:
-            # (w_self, w_ring, bias) per layer, channel-major: encoder W^T, decoder W (tied)
+            # (w_self, w_ring, bias) per layer, (C_out, C_in): encoder W^T, decoder W (tied)
             self.enc = [(c.weight[: c.c_in].t(), c.weight[c.c_in :].t(), c.bias) for c in model.convs]
             K = len(model.convs)
             self.dec = [
@@ -392,23 +368,23 @@ class _FC:
             self.ring = model.ring
         self.bank = _GradBank() if deferred else None
         if deferred:
-            self.weight = _WeightGate.apply(model.fc.weight, self.bank, V, C)
+            self.weight = _WeightGate.apply(model.fc.weight, self.bank)
             dev = model.fc.weight.device.type
             if torch.is_autocast_enabled(dev) and torch.get_autocast_dtype(dev) == torch.bfloat16:
                 # --precision bf16: one bfloat16 copy of the big weight per roll-out; the per-step
                 # products read half the bytes (and run at the bf16 rate); master weight stays float32
                 self.weight = self.weight.to(torch.bfloat16)
         else:
-            self.weight = _to_channel_major(model.fc.weight, V, C)
+            self.weight = model.fc.weight
         self.bias = model.fc.bias
-        self.dec_bias = _to_channel_major(model.dec_fc_bias, V, C)
+        self.dec_bias = model.dec_fc_bias
 
-    def encode(self, x):  # (C*V, B) -> (B, L)
+    def encode(self, x):  # (V*C, B) -> (B, L)
         if self.bank is None:
             return torch.addmm(self.bias, x.t(), self.weight.t())
         return _Encode.apply(x, self.weight, self.bias, self.bank)
 
-    def decode(self, h):  # (B, L) -> (C*V, B)
+    def decode(self, h):  # (B, L) -> (V*C, B)
         if self.bank is None:
             return torch.addmm(self.dec_bias[:, None], self.weight.t(), h.t())
         return _Decode.apply(h, self.weight, self.dec_bias, self.bank)
@@ -421,8 +397,8 @@ class _FC:
 class BDLSTM(nn.Module):
     """Encoder (Conv + FC + VAE head), LSTM(s), tied decoder; see the module docstring.
 
-    Public methods take frames ``(B, V, C)``; the ``_cm`` methods work on channel-major
-    ``(C, V, B)`` frames, the layout of the roll-out. Parameters are created in a fixed order, so
+    Public methods take frames ``(B, V, C)``; the ``_vm`` methods work on vertex-major
+    ``(V, C, B)`` frames, the layout of the roll-out. Parameters are created in a fixed order, so
     a seed gives the same initial weights on every machine and every rank.
     """
 
@@ -437,7 +413,7 @@ class BDLSTM(nn.Module):
             )
         self.config = config
         C, L, V = config.channels, config.latent, config.n_vertices
-        self.ring = NeighborMean(topology, config.conv_impl, channels=C)
+        self.ring = NeighborMean(topology, config.conv_impl)
         self.convs = nn.ModuleList(MeshConv(C, C, self.ring) for _ in range(config.conv_layers))
         self.fc = nn.Linear(V * C, L)
         self.fc_mu = nn.Linear(L, L)
@@ -448,8 +424,8 @@ class BDLSTM(nn.Module):
         self.lstm = nn.LSTM(L, L, config.lstm_layers)
         self.lstm_backward = nn.LSTM(L, L, config.lstm_layers) if config.variant == "std-bd" else None
         scale = torch.ones(C) if config.step_scale is None else torch.tensor(config.step_scale)
-        self.register_buffer("step_scale", scale.view(C, 1, 1), persistent=False)  # from the config
-        if config.input_norm:  # channel-major (C, V, 1) and (C, 1, 1); stored with the weights
+        self.register_buffer("step_scale", scale.view(1, C, 1), persistent=False)  # from the config
+        if config.input_norm:  # stored channel-major: (C, V, 1) and (C, 1, 1)
             self.register_buffer("input_offset", torch.zeros(C, V, 1))
             self.register_buffer("input_spread", torch.ones(C, 1, 1))
 
@@ -468,12 +444,12 @@ class BDLSTM(nn.Module):
     def _fc_ops(self, deferred: bool = False, fused: bool = False) -> _FC:
         return _FC(self, deferred and torch.is_grad_enabled() and self.fc.weight.requires_grad, fused)
 
-    # -- the pieces (channel-major) -----------------------------------------------------------
+    # -- the pieces (vertex-major) -------------------------------------------------------------
 
-    def _encode_cm(self, x: torch.Tensor, fc: _FC) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(C, V, B)`` -> ``(mu, logvar)`` ``(B, L)``."""
+    def _encode_vm(self, x: torch.Tensor, fc: _FC) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(V, C, B)`` -> ``(mu, logvar)`` ``(B, L)``."""
         if self.config.input_norm:
-            x = (x - self.input_offset) / self.input_spread
+            x = (x - self.input_offset.permute(1, 0, 2)) / self.input_spread.view(1, -1, 1)
         if fc.fused:
             for w_self, w_ring, b in fc.enc:
                 x = MeshConvFused.apply(x, w_self, w_ring, b, fc.ring, True, None)
@@ -483,10 +459,10 @@ class BDLSTM(nn.Module):
         e = fc.encode(x.reshape(-1, x.shape[-1]))
         return self.fc_mu(e), self.fc_logvar(e)
 
-    def _decode_cm(self, h: torch.Tensor, fc: _FC, residual: torch.Tensor | None = None) -> torch.Tensor:
-        """``(B, L)`` -> ``dX`` ``(C, V, B)`` (``residual + dX`` when a residual is given)."""
+    def _decode_vm(self, h: torch.Tensor, fc: _FC, residual: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, L)`` -> ``dX`` ``(V, C, B)`` (``residual + dX`` when a residual is given)."""
         C, V = self.config.channels, self.config.n_vertices
-        y = fc.decode(h).view(C, V, h.shape[0])
+        y = fc.decode(h).view(V, C, h.shape[0])
         K = len(self.convs)
         if fc.fused:
             for k, (w_self, w_ring, b) in enumerate(fc.dec):
@@ -499,23 +475,23 @@ class BDLSTM(nn.Module):
                 y = torch.tanh(y)
         return y if residual is None else residual + y
 
-    def _step_cm(self, state, x, fc: _FC, sample: bool, n_forward):
-        mu, logvar = self._encode_cm(x, fc)
+    def _step_vm(self, state, x, fc: _FC, sample: bool, n_forward):
+        mu, logvar = self._encode_vm(x, fc)
         z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         h, state = self._lstm(z, state, n_forward)
         if self.config.step_scale is not None:
-            return state, x + self._decode_cm(h, fc) * self.step_scale, mu, logvar
-        return state, self._decode_cm(h, fc, residual=x), mu, logvar
+            return state, x + self._decode_vm(h, fc) * self.step_scale, mu, logvar
+        return state, self._decode_vm(h, fc, residual=x), mu, logvar
 
     # -- public, batch-major ----------------------------------------------------------------------
 
     def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Frames ``(B, V, C)`` -> ``(mu, logvar)``, each ``(B, L)``."""
-        return self._encode_cm(x.permute(2, 1, 0), self._fc_ops())
+        return self._encode_vm(x.permute(1, 2, 0), self._fc_ops())
 
     def decode(self, h: torch.Tensor) -> torch.Tensor:
         """LSTM outputs ``(B, L)`` -> frame changes ``dX`` ``(B, V, C)`` (tied weights)."""
-        return self._decode_cm(h, self._fc_ops()).permute(2, 1, 0)
+        return self._decode_vm(h, self._fc_ops()).permute(2, 0, 1)
 
     def initial_state(self, n_forward: int, n_backward: int = 0, device=None, dtype=torch.float32):
         """``(h, c)``, each ``(K, n_forward + n_backward, L)``: +init for forward rows, -init after."""
@@ -551,8 +527,8 @@ class BDLSTM(nn.Module):
         Returns:
             ``(state', x_next (B, V, C), mu (B, L), logvar (B, L))``.
         """
-        state, nxt, mu, logvar = self._step_cm(state, x.permute(2, 1, 0), self._fc_ops(), sample, n_forward)
-        return state, nxt.permute(2, 1, 0), mu, logvar
+        state, nxt, mu, logvar = self._step_vm(state, x.permute(1, 2, 0), self._fc_ops(), sample, n_forward)
+        return state, nxt.permute(2, 0, 1), mu, logvar
 
     def rollout(self, first: torch.Tensor, steps: int, state, sample: bool = False, n_forward=None):
         """Free-running roll-out from ``first`` ``(B, V, C)``.
@@ -561,15 +537,15 @@ class BDLSTM(nn.Module):
         ``(steps, B, L)``, final state)``. The time loop is the only Python loop.
         """
         fc = self._fc_ops(deferred=True, fused=self.fast_path)
-        x = first.permute(2, 1, 0).contiguous()  # (C, V, B)
+        x = first.permute(1, 2, 0).contiguous()  # (V, C, B)
         frames, mus, logvars = [x], [], []
         for _ in range(steps):
-            state, x, mu, logvar = self._step_cm(state, x, fc, sample, n_forward)
+            state, x, mu, logvar = self._step_vm(state, x, fc, sample, n_forward)
             frames.append(x)
             mus.append(mu)
             logvars.append(logvar)
         # (B, n, V, C), contiguous: one copy, and the loss then reads it in its own layout
-        out = torch.stack([f.permute(2, 1, 0) for f in frames], 1)
+        out = torch.stack([f.permute(2, 0, 1) for f in frames], 1)
         if steps:
             return out, torch.stack(mus), torch.stack(logvars), state
         empty = first.new_zeros(0, first.shape[0], self.config.latent)
