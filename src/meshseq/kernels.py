@@ -57,7 +57,7 @@ def cpu_kernels_available() -> bool:
         try:
             from torch.utils.cpp_extension import load
 
-            load("meshseq_kernels", [str(_SOURCE)], extra_cflags=["-O3", "-march=native"],
+            load("meshseq_kernels", [str(_SOURCE)], extra_cflags=["-O3", "-march=native", "-fopenmp"], extra_ldflags=["-fopenmp"],
                  is_python_module=False, verbose=False)
             _cpu_kernels = hasattr(torch.ops.meshseq, "conv_forward")
         except Exception as e:  # no compiler, no ninja, a compile error: fall back, say why
