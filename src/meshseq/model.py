@@ -324,7 +324,8 @@ class _Encode(torch.autograd.Function):
         x, weight = ctx.saved_tensors
         ctx.bank.left.append(g.to(weight.dtype))
         ctx.bank.right.append(x.to(weight.dtype))  # dW = g^T x^T = (x g)^T
-        return (g.to(weight.dtype) @ weight).t().to(g.dtype), None, g.sum(0), None
+        # (N, B) contiguous, the layout the conv layer's backward reads (no transposing copy)
+        return torch.mm(weight.t(), g.t().to(weight.dtype)).to(g.dtype), None, g.sum(0), None
 
 
 class _Decode(torch.autograd.Function):
