@@ -46,7 +46,9 @@ def register(sub) -> None:
     m.add_argument("--lstm-layers", type=int, default=3, help="LSTM layers")
     m.add_argument("--conv-layers", type=int, default=3, help="mesh convolution layers (9 -> 9, tanh)")
     m.add_argument("--conv", choices=("sparse", "gather"), default="sparse",
-                   help="1-ring mean by a sparse matrix or a padded gather (sparse measured faster)")
+                   help="1-ring mean of the reference conv layer (MeshConv.forward, used by single "
+                        "encode/decode/step calls): sparse matrix or padded gather; roll-outs (training, "
+                        "prediction) always use the fused kernel (meshseq.kernels)")
     l = p.add_argument_group("recipe, loss and optimiser (unset options come from --recipe)")
     l.add_argument("--recipe", choices=sorted(RECIPE_NAMES), default="default",
                    help="default: meshseq's measured recipe (see docs/results.md); paper: the paper's "
