@@ -81,3 +81,19 @@ def test_cpu_kernel_gradients_have_the_same_bits_with_any_thread_count(ring):
     (y1, g1), (y3, g3) = out
     assert torch.equal(y1, y3)
     assert all(torch.equal(a, c) for a, c in zip(g1, g3))
+
+
+def test_a_stale_build_lock_is_removed_and_a_fresh_one_kept(tmp_path):
+    """A killed build leaves build/lock, and torch's builder would wait for it forever."""
+    import os
+    import time
+
+    lock = tmp_path / "lock"
+    lock.write_text("")
+    assert not kernels.clear_stale_lock(tmp_path) and lock.exists()  # a build may be running now
+    old = time.time() - 3600
+    os.utime(lock, (old, old))
+    with pytest.warns(RuntimeWarning, match="stale build lock"):
+        assert kernels.clear_stale_lock(tmp_path)
+    assert not lock.exists()
+    assert not kernels.clear_stale_lock(tmp_path)  # nothing there: nothing to do

@@ -10,8 +10,8 @@ full-size passes forward and more backward. ``MeshConvFused`` saves only ``x`` a
 activation's output and has two implementations of the same arithmetic:
 
 * CPU, float32: ``csrc/mesh_conv.cpp``, compiled on first use with the machine's C++ compiler
-  (``torch.utils.cpp_extension``; cached under ``TORCH_EXTENSIONS_DIR``, by default
-  ``~/.cache/torch_extensions``). Forward: each vertex gathers its neighbours' ``(C, B)`` blocks
+  (``torch.utils.cpp_extension``; cached in ``meshseq_kernels-PY-TORCH`` under
+  ``TORCH_EXTENSIONS_DIR``, by default ``~/.cache/torch_extensions``). Forward: each vertex gathers its neighbours' ``(C, B)`` blocks
   (rows of the vertex-major layout), applies both maps, the bias, tanh and the residual while the
   block is in registers, vectorised over the windows: ``x`` read once, ``y`` written once.
   Backward: ``gx = W_s^T g + W_r^T (A^T g)`` and the weight gradients in one more pass, summed
@@ -28,6 +28,7 @@ Both agree with ``MeshConv.forward`` to float32 rounding (``tests/test_kernels.p
 from __future__ import annotations
 
 import os
+import sys
 import threading
 import warnings
 from pathlib import Path
@@ -55,10 +56,14 @@ def cpu_kernels_available() -> bool:
             _cpu_kernels = False
             return False
         try:
-            from torch.utils.cpp_extension import load
+            from torch.utils.cpp_extension import get_default_build_root, load
 
-            load("meshseq_kernels", [str(_SOURCE)], extra_cflags=["-O3", "-march=native", "-fopenmp"], extra_ldflags=["-fopenmp"],
-                 is_python_module=False, verbose=False)
+            py = f"py{sys.version_info[0]}{sys.version_info[1]}"
+            build = Path(get_default_build_root()) / f"meshseq_kernels-{py}-torch{torch.__version__}"
+            build.mkdir(parents=True, exist_ok=True)
+            clear_stale_lock(build)
+            load("meshseq_kernels", [str(_SOURCE)], extra_cflags=["-O3", "-march=native", "-fopenmp"],
+                 extra_ldflags=["-fopenmp"], build_directory=str(build), is_python_module=False, verbose=False)
             _cpu_kernels = hasattr(torch.ops.meshseq, "conv_forward")
         except Exception as e:  # no compiler, no ninja, a compile error: fall back, say why
             reason = " ".join(str(e).split())[:300]
@@ -66,6 +71,25 @@ def cpu_kernels_available() -> bool:
                           "training on CPU uses the slower torch-op path", RuntimeWarning, stacklevel=2)
             _cpu_kernels = False
     return _cpu_kernels
+
+
+def clear_stale_lock(build: Path, max_age_s: float = 600.0) -> bool:
+    """Remove ``build/lock`` if it is older than ``max_age_s`` (a build takes about 30 s).
+
+    torch's extension builder waits, without end, for the lock file a build leaves while it
+    runs; a build that was killed (Ctrl-C, a session's end) leaves it behind. True if removed.
+    """
+    import time
+
+    lock = build / "lock"
+    try:
+        if time.time() - lock.stat().st_mtime > max_age_s:
+            lock.unlink()
+            warnings.warn(f"meshseq: removed a stale build lock {lock} (a killed build)", RuntimeWarning, stacklevel=2)
+            return True
+    except FileNotFoundError:
+        pass
+    return False
 
 
 def _use_cpu_kernels(x: torch.Tensor) -> bool:
