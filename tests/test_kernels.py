@@ -41,7 +41,7 @@ def test_the_cpu_kernels_build_here():
     assert kernels.cpu_kernels_available()
 
 
-@pytest.mark.parametrize("windows", [3, 8, 16, 32])  # scalar, 8-wide, 16-wide tiles, two 16-wide tiles
+@pytest.mark.parametrize("windows", [3, 8, 9, 16, 32, 37])  # 8-wide (partial, full), 16-wide (partial, full, two, two + partial)
 @pytest.mark.parametrize("act,residual", [(True, False), (False, True), (False, False)])
 @pytest.mark.parametrize("path", ["cpp", "torch"])
 def test_fused_layer_matches_plain_autograd(ring, windows, act, residual, path, monkeypatch):

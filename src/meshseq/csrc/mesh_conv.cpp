@@ -15,14 +15,16 @@
 // fixed chunk of vertices (NCHUNK, whatever the thread count) and the chunks in order, so the
 // result has the same bits with any number of threads (bit-exact resume).
 //
-// Vectorised over the windows B: a tile of 16 (or 8, or 1) windows of one channel is one SIMD
-// vector (GCC/Clang vector extensions; the compiler maps them to AVX-512, AVX2 or SSE). Threads:
+// Vectorised over the windows B: a tile of 16 windows of one channel (8 when B <= 8) is one SIMD
+// vector (GCC/Clang vector extensions; the compiler maps them to AVX-512, AVX2 or SSE); the last
+// tile may be partial (its unused lanes read as 0 and are never written). Threads:
 // at::parallel_for over vertices (torch's intra-op thread count).
 // tanh: Eigen's rational approximation (what torch's vectorised CPU tanh uses), to ~1 ulp.
 
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
+#include <algorithm>
 #include <optional>
 #include <vector>
 
@@ -34,9 +36,15 @@ constexpr int CMAX = 16;    // most channels a layer may have
 constexpr int NCHUNK = 64;  // vertex chunks of the weight-gradient sums
 
 template <typename T> inline T splat(float s) { return T{} + s; }
-template <typename T> inline T load(const float* p) { T r; __builtin_memcpy(&r, p, sizeof(T)); return r; }
-template <typename T> inline void store(float* p, T v) { __builtin_memcpy(p, &v, sizeof(T)); }
-inline float lanes_sum(float v) { return v; }
+// n: the lanes in use (a tile at the end of the windows may be partial; the others read as 0)
+template <typename T> inline T load(const float* p, int n) {
+  T r{};
+  __builtin_memcpy(&r, p, n == int(sizeof(T) / sizeof(float)) ? sizeof(T) : n * sizeof(float));
+  return r;
+}
+template <typename T> inline void store(float* p, T v, int n) {
+  __builtin_memcpy(p, &v, n == int(sizeof(T) / sizeof(float)) ? sizeof(T) : n * sizeof(float));
+}
 template <typename T> inline float lanes_sum(T v) {
   float s = 0.f;
   for (int l = 0; l < int(sizeof(T) / sizeof(float)); ++l) s += v[l];
@@ -77,21 +85,22 @@ void forward_tiles(const float* X, float* Y, const float* Ws, const float* Wr, c
     T ax[CMAX], xv[CMAX];
     for (int64_t v = v0; v < v1; ++v) {
       for (int b0 = 0; b0 < B; b0 += W) {
+        const int n = std::min(W, B - b0);
         for (int c = 0; c < Ci; ++c) {
           ax[c] = T{};
-          xv[c] = load<T>(X + v * xs + c * B + b0);
+          xv[c] = load<T>(X + v * xs + c * B + b0, n);
         }
         for (int64_t k = A.rowptr[v]; k < A.rowptr[v + 1]; ++k) {
           const T w = splat<T>(A.weight[k]);
           const float* xu = X + A.col[k] * xs + b0;
-          for (int c = 0; c < Ci; ++c) ax[c] += w * load<T>(xu + c * B);
+          for (int c = 0; c < Ci; ++c) ax[c] += w * load<T>(xu + c * B, n);
         }
         for (int o = 0; o < Co; ++o) {
           T acc = splat<T>(bias[o]);
           for (int c = 0; c < Ci; ++c) acc += Ws[o * Ci + c] * xv[c] + Wr[o * Ci + c] * ax[c];
           if (act) acc = tanh_rational(acc);
-          if (R) acc += load<T>(R + v * ys + o * B + b0);
-          store(Y + v * ys + o * B + b0, acc);
+          if (R) acc += load<T>(R + v * ys + o * B + b0, n);
+          store(Y + v * ys + o * B + b0, acc, n);
         }
       }
     }
@@ -99,11 +108,12 @@ void forward_tiles(const float* X, float* Y, const float* Ws, const float* Wr, c
 }
 
 template <typename T, int W>
-void tanh_grad_tiles(const float* gy, const float* y, float* g, int64_t n) {
-  at::parallel_for(0, n / W, 4096, [&](int64_t i0, int64_t i1) {
+void tanh_grad_tiles(const float* gy, const float* y, float* g, int64_t size) {
+  at::parallel_for(0, (size + W - 1) / W, 4096, [&](int64_t i0, int64_t i1) {
     for (int64_t i = i0; i < i1; ++i) {
-      const T yi = load<T>(y + i * W);
-      store(g + i * W, load<T>(gy + i * W) * (1.0f - yi * yi));
+      const int n = int(std::min<int64_t>(W, size - i * W));
+      const T yi = load<T>(y + i * W, n);
+      store(g + i * W, load<T>(gy + i * W, n) * (1.0f - yi * yi), n);
     }
   });
 }
@@ -122,20 +132,21 @@ void backward_tiles(const float* G, const float* X, float* GX, const float* Ws, 
       const int64_t v0 = V * chunk / NCHUNK, v1 = V * (chunk + 1) / NCHUNK;
       for (int64_t v = v0; v < v1; ++v) {
         for (int b0 = 0; b0 < B; b0 += W) {
+          const int n = std::min(W, B - b0);
           for (int o = 0; o < Co; ++o) {
             atg[o] = T{};
-            gv[o] = load<T>(G + v * gs + o * B + b0);
+            gv[o] = load<T>(G + v * gs + o * B + b0, n);
           }
           for (int64_t k = At.rowptr[v]; k < At.rowptr[v + 1]; ++k) {
             const T w = splat<T>(At.weight[k]);
             const float* gu = G + At.col[k] * gs + b0;
-            for (int o = 0; o < Co; ++o) atg[o] += w * load<T>(gu + o * B);
+            for (int o = 0; o < Co; ++o) atg[o] += w * load<T>(gu + o * B, n);
           }
           for (int c = 0; c < Ci; ++c) {
             T s = T{};
             for (int o = 0; o < Co; ++o) s += Ws[o * Ci + c] * gv[o] + Wr[o * Ci + c] * atg[o];
-            store(GX + v * xs + c * B + b0, s);
-            const T xc = load<T>(X + v * xs + c * B + b0);
+            store(GX + v * xs + c * B + b0, s, n);
+            const T xc = load<T>(X + v * xs + c * B + b0, n);
             for (int o = 0; o < Co; ++o) {
               sums[o * Ci + c] += gv[o] * xc;
               sums[Co * Ci + o * Ci + c] += atg[o] * xc;
@@ -177,9 +188,8 @@ torch::Tensor conv_forward(torch::Tensor x, torch::Tensor w_self, torch::Tensor 
     tiles(x.data_ptr<float>(), y.data_ptr<float>(), ws.data_ptr<float>(), wr.data_ptr<float>(), b.data_ptr<float>(),
           csr(rowptr, col, weight), R, V, Ci, Co, B, act);
   };
-  if (B % 16 == 0) run(forward_tiles<v16, 16>);
-  else if (B % 8 == 0) run(forward_tiles<v8, 8>);
-  else run(forward_tiles<float, 1>);
+  if (B > 8) run(forward_tiles<v16, 16>);
+  else run(forward_tiles<v8, 8>);
   return y;
 }
 
@@ -195,9 +205,7 @@ std::vector<torch::Tensor> conv_backward(torch::Tensor gy, std::optional<torch::
   if (y.has_value()) {
     auto out = y->contiguous();
     auto gt = torch::empty_like(g);
-    const int64_t n = g.numel();
-    if (n % 16 == 0) tanh_grad_tiles<v16, 16>(g.data_ptr<float>(), out.data_ptr<float>(), gt.data_ptr<float>(), n);
-    else tanh_grad_tiles<float, 1>(g.data_ptr<float>(), out.data_ptr<float>(), gt.data_ptr<float>(), n);
+    tanh_grad_tiles<v16, 16>(g.data_ptr<float>(), out.data_ptr<float>(), gt.data_ptr<float>(), g.numel());
     g = gt;
   }
   auto gx = torch::empty({V, Ci, B}, x.options());
@@ -207,9 +215,8 @@ std::vector<torch::Tensor> conv_backward(torch::Tensor gy, std::optional<torch::
     tiles(g.data_ptr<float>(), x.data_ptr<float>(), gx.data_ptr<float>(), ws.data_ptr<float>(), wr.data_ptr<float>(),
           csr(rowptr_t, col_t, weight_t), partial.data(), V, Ci, Co, B);
   };
-  if (B % 16 == 0) run(backward_tiles<v16, 16>);
-  else if (B % 8 == 0) run(backward_tiles<v8, 8>);
-  else run(backward_tiles<float, 1>);
+  if (B > 8) run(backward_tiles<v16, 16>);
+  else run(backward_tiles<v8, 8>);
   auto sums = torch::empty({n_sums}, x.options());
   float* s = sums.data_ptr<float>();
   for (int i = 0; i < n_sums; ++i) {
