@@ -16,15 +16,14 @@
 // result has the same bits with any number of threads (bit-exact resume).
 //
 // Vectorised over the windows B: a tile of 16 windows of one channel (8 when B <= 8) is one SIMD
-// vector (GCC/Clang vector extensions; the compiler maps them to AVX-512, AVX2 or SSE); the last
-// tile may be partial (its unused lanes read as 0 and are never written). Threads:
+// vector (GCC/Clang vector extensions; the compiler maps them to AVX-512, AVX2 or SSE). Other
+// window counts are padded with zeros to whole tiles (a copy: far cheaper than scalar code). Threads:
 // at::parallel_for over vertices (torch's intra-op thread count).
 // tanh: Eigen's rational approximation (what torch's vectorised CPU tanh uses), to ~1 ulp.
 
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
-#include <algorithm>
 #include <optional>
 #include <vector>
 
@@ -36,15 +35,8 @@ constexpr int CMAX = 16;    // most channels a layer may have
 constexpr int NCHUNK = 64;  // vertex chunks of the weight-gradient sums
 
 template <typename T> inline T splat(float s) { return T{} + s; }
-// n: the lanes in use (a tile at the end of the windows may be partial; the others read as 0)
-template <typename T> inline T load(const float* p, int n) {
-  T r{};
-  __builtin_memcpy(&r, p, n == int(sizeof(T) / sizeof(float)) ? sizeof(T) : n * sizeof(float));
-  return r;
-}
-template <typename T> inline void store(float* p, T v, int n) {
-  __builtin_memcpy(p, &v, n == int(sizeof(T) / sizeof(float)) ? sizeof(T) : n * sizeof(float));
-}
+template <typename T> inline T load(const float* p) { T r; __builtin_memcpy(&r, p, sizeof(T)); return r; }
+template <typename T> inline void store(float* p, T v) { __builtin_memcpy(p, &v, sizeof(T)); }
 template <typename T> inline float lanes_sum(T v) {
   float s = 0.f;
   for (int l = 0; l < int(sizeof(T) / sizeof(float)); ++l) s += v[l];
@@ -85,22 +77,21 @@ void forward_tiles(const float* X, float* Y, const float* Ws, const float* Wr, c
     T ax[CMAX], xv[CMAX];
     for (int64_t v = v0; v < v1; ++v) {
       for (int b0 = 0; b0 < B; b0 += W) {
-        const int n = std::min(W, B - b0);
         for (int c = 0; c < Ci; ++c) {
           ax[c] = T{};
-          xv[c] = load<T>(X + v * xs + c * B + b0, n);
+          xv[c] = load<T>(X + v * xs + c * B + b0);
         }
         for (int64_t k = A.rowptr[v]; k < A.rowptr[v + 1]; ++k) {
           const T w = splat<T>(A.weight[k]);
           const float* xu = X + A.col[k] * xs + b0;
-          for (int c = 0; c < Ci; ++c) ax[c] += w * load<T>(xu + c * B, n);
+          for (int c = 0; c < Ci; ++c) ax[c] += w * load<T>(xu + c * B);
         }
         for (int o = 0; o < Co; ++o) {
           T acc = splat<T>(bias[o]);
           for (int c = 0; c < Ci; ++c) acc += Ws[o * Ci + c] * xv[c] + Wr[o * Ci + c] * ax[c];
           if (act) acc = tanh_rational(acc);
-          if (R) acc += load<T>(R + v * ys + o * B + b0, n);
-          store(Y + v * ys + o * B + b0, acc, n);
+          if (R) acc += load<T>(R + v * ys + o * B + b0);
+          store(Y + v * ys + o * B + b0, acc);
         }
       }
     }
@@ -108,12 +99,11 @@ void forward_tiles(const float* X, float* Y, const float* Ws, const float* Wr, c
 }
 
 template <typename T, int W>
-void tanh_grad_tiles(const float* gy, const float* y, float* g, int64_t size) {
-  at::parallel_for(0, (size + W - 1) / W, 4096, [&](int64_t i0, int64_t i1) {
+void tanh_grad_tiles(const float* gy, const float* y, float* g, int64_t n) {
+  at::parallel_for(0, n / W, 4096, [&](int64_t i0, int64_t i1) {
     for (int64_t i = i0; i < i1; ++i) {
-      const int n = int(std::min<int64_t>(W, size - i * W));
-      const T yi = load<T>(y + i * W, n);
-      store(g + i * W, load<T>(gy + i * W, n) * (1.0f - yi * yi), n);
+      const T yi = load<T>(y + i * W);
+      store(g + i * W, load<T>(gy + i * W) * (1.0f - yi * yi));
     }
   });
 }
@@ -132,21 +122,20 @@ void backward_tiles(const float* G, const float* X, float* GX, const float* Ws, 
       const int64_t v0 = V * chunk / NCHUNK, v1 = V * (chunk + 1) / NCHUNK;
       for (int64_t v = v0; v < v1; ++v) {
         for (int b0 = 0; b0 < B; b0 += W) {
-          const int n = std::min(W, B - b0);
           for (int o = 0; o < Co; ++o) {
             atg[o] = T{};
-            gv[o] = load<T>(G + v * gs + o * B + b0, n);
+            gv[o] = load<T>(G + v * gs + o * B + b0);
           }
           for (int64_t k = At.rowptr[v]; k < At.rowptr[v + 1]; ++k) {
             const T w = splat<T>(At.weight[k]);
             const float* gu = G + At.col[k] * gs + b0;
-            for (int o = 0; o < Co; ++o) atg[o] += w * load<T>(gu + o * B, n);
+            for (int o = 0; o < Co; ++o) atg[o] += w * load<T>(gu + o * B);
           }
           for (int c = 0; c < Ci; ++c) {
             T s = T{};
             for (int o = 0; o < Co; ++o) s += Ws[o * Ci + c] * gv[o] + Wr[o * Ci + c] * atg[o];
-            store(GX + v * xs + c * B + b0, s, n);
-            const T xc = load<T>(X + v * xs + c * B + b0, n);
+            store(GX + v * xs + c * B + b0, s);
+            const T xc = load<T>(X + v * xs + c * B + b0);
             for (int o = 0; o < Co; ++o) {
               sums[o * Ci + c] += gv[o] * xc;
               sums[Co * Ci + o * Ci + c] += atg[o] * xc;
@@ -164,6 +153,12 @@ Csr csr(const torch::Tensor& rowptr, const torch::Tensor& col, const torch::Tens
   return {rowptr.data_ptr<int64_t>(), col.data_ptr<int64_t>(), weight.data_ptr<float>()};
 }
 
+// windows per tile for B windows, and B padded to whole tiles
+int tile(int B) { return B > 8 ? 16 : 8; }
+torch::Tensor pad_windows(const torch::Tensor& t, int Bp) {
+  return t.size(2) == Bp ? t.contiguous() : torch::constant_pad_nd(t, {0, Bp - t.size(2)}).contiguous();
+}
+
 void check(const torch::Tensor& x, const torch::Tensor& w_self, int64_t V) {
   TORCH_CHECK(x.dim() == 3 && x.is_contiguous() && x.scalar_type() == torch::kFloat && x.device().is_cpu(),
               "mesh_conv: x must be a contiguous float32 CPU tensor (V, C, B)");
@@ -173,39 +168,45 @@ void check(const torch::Tensor& x, const torch::Tensor& w_self, int64_t V) {
 
 }  // namespace
 
-torch::Tensor conv_forward(torch::Tensor x, torch::Tensor w_self, torch::Tensor w_ring, torch::Tensor bias,
+torch::Tensor conv_forward(torch::Tensor x_in, torch::Tensor w_self, torch::Tensor w_ring, torch::Tensor bias,
                            torch::Tensor rowptr, torch::Tensor col, torch::Tensor weight, bool act,
                            std::optional<torch::Tensor> residual) {
   const int64_t V = rowptr.size(0) - 1;
-  check(x, w_self, V);
-  const int Ci = x.size(1), B = x.size(2), Co = w_self.size(0);
+  check(x_in, w_self, V);
+  const int B_in = x_in.size(2), W = tile(B_in), B = (B_in + W - 1) / W * W;
+  auto x = pad_windows(x_in, B);
+  const int Ci = x.size(1), Co = w_self.size(0);
   auto ws = w_self.contiguous(), wr = w_ring.contiguous(), b = bias.contiguous();
   auto y = torch::empty({V, Co, B}, x.options());
   torch::Tensor r;
-  if (residual.has_value()) r = residual->contiguous();
+  if (residual.has_value()) r = pad_windows(*residual, B);
   const float* R = residual.has_value() ? r.data_ptr<float>() : nullptr;
   auto run = [&](auto tiles) {
     tiles(x.data_ptr<float>(), y.data_ptr<float>(), ws.data_ptr<float>(), wr.data_ptr<float>(), b.data_ptr<float>(),
           csr(rowptr, col, weight), R, V, Ci, Co, B, act);
   };
-  if (B > 8) run(forward_tiles<v16, 16>);
+  if (W == 16) run(forward_tiles<v16, 16>);
   else run(forward_tiles<v8, 8>);
-  return y;
+  return B == B_in ? y : y.narrow(2, 0, B_in).contiguous();
 }
 
 // returns (gx, gWs, gWr, gb); y: the layer's output when act (tanh), else None
-std::vector<torch::Tensor> conv_backward(torch::Tensor gy, std::optional<torch::Tensor> y, torch::Tensor x,
+std::vector<torch::Tensor> conv_backward(torch::Tensor gy, std::optional<torch::Tensor> y, torch::Tensor x_in,
                                          torch::Tensor w_self, torch::Tensor w_ring,
                                          torch::Tensor rowptr_t, torch::Tensor col_t, torch::Tensor weight_t) {
   const int64_t V = rowptr_t.size(0) - 1;
-  check(x, w_self, V);
-  const int Ci = x.size(1), B = x.size(2), Co = w_self.size(0);
+  check(x_in, w_self, V);
+  const int B_in = x_in.size(2), W = tile(B_in), B = (B_in + W - 1) / W * W;
+  auto x = pad_windows(x_in, B);  // padded windows: x = 0 and g = 0 there, so they add nothing
+  const int Ci = x.size(1), Co = w_self.size(0);
   auto ws = w_self.contiguous(), wr = w_ring.contiguous();
-  torch::Tensor g = gy.contiguous();
+  torch::Tensor g = pad_windows(gy, B);
   if (y.has_value()) {
-    auto out = y->contiguous();
+    auto out = pad_windows(*y, B);
     auto gt = torch::empty_like(g);
-    tanh_grad_tiles<v16, 16>(g.data_ptr<float>(), out.data_ptr<float>(), gt.data_ptr<float>(), g.numel());
+    const int64_t n = g.numel();  // a multiple of 8 (B is)
+    if (n % 16 == 0) tanh_grad_tiles<v16, 16>(g.data_ptr<float>(), out.data_ptr<float>(), gt.data_ptr<float>(), n);
+    else tanh_grad_tiles<v8, 8>(g.data_ptr<float>(), out.data_ptr<float>(), gt.data_ptr<float>(), n);
     g = gt;
   }
   auto gx = torch::empty({V, Ci, B}, x.options());
@@ -215,7 +216,7 @@ std::vector<torch::Tensor> conv_backward(torch::Tensor gy, std::optional<torch::
     tiles(g.data_ptr<float>(), x.data_ptr<float>(), gx.data_ptr<float>(), ws.data_ptr<float>(), wr.data_ptr<float>(),
           csr(rowptr_t, col_t, weight_t), partial.data(), V, Ci, Co, B);
   };
-  if (B > 8) run(backward_tiles<v16, 16>);
+  if (W == 16) run(backward_tiles<v16, 16>);
   else run(backward_tiles<v8, 8>);
   auto sums = torch::empty({n_sums}, x.options());
   float* s = sums.data_ptr<float>();
@@ -224,6 +225,7 @@ std::vector<torch::Tensor> conv_backward(torch::Tensor gy, std::optional<torch::
     for (int k = 0; k < NCHUNK; ++k) acc += partial[size_t(k) * n_sums + i];
     s[i] = float(acc);
   }
+  if (B != B_in) gx = gx.narrow(2, 0, B_in).contiguous();
   return {gx, sums.slice(0, 0, Co * Ci).view({Co, Ci}), sums.slice(0, Co * Ci, 2 * Co * Ci).view({Co, Ci}),
           sums.slice(0, 2 * Co * Ci, n_sums)};
 }
