@@ -317,7 +317,7 @@ def main() -> None:
                 its[variants[0]]()
                 sync(device)
             key = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
-            print(prof.key_averages().table(sort_by=key, row_limit=15))
+            print(prof.key_averages().table(sort_by=key, row_limit=40))
 
     if args.scaling:
         print(f"\nscaling (fast path, float32, {args.scaling_iterations} measured iteration(s) each after a warm-up):")

@@ -317,7 +317,9 @@ class _Encode(torch.autograd.Function):
     def forward(ctx, x, weight, bias, bank):
         ctx.save_for_backward(x, weight)
         ctx.bank = bank
-        return torch.addmm(bias.to(weight.dtype), x.t().to(weight.dtype), weight.t()).to(x.dtype)
+        # (W x)^T: W (L, N) times x (N, B) is MKL's fast orientation here (4.3 ms against 6.1 ms
+        # for x^T W^T, horse, 16 columns, 2 threads)
+        return torch.addmm(bias.to(weight.dtype)[:, None], weight, x.to(weight.dtype)).t().to(x.dtype)
 
     @staticmethod
     def backward(ctx, g):  # g (B, L)
@@ -382,7 +384,7 @@ class _FC:
 
     def encode(self, x):  # (V*C, B) -> (B, L)
         if self.bank is None:
-            return torch.addmm(self.bias, x.t(), self.weight.t())
+            return torch.addmm(self.bias[:, None], self.weight, x).t()
         return _Encode.apply(x, self.weight, self.bias, self.bank)
 
     def decode(self, h):  # (B, L) -> (V*C, B)
