@@ -587,7 +587,10 @@ class BDLSTM(nn.Module):
             mu, logvar = torch.cat(mus + [mu]), torch.cat(logvars + [logvar])
         if uni:
             return {"forward": frames, "backward": None, "mu": mu, "logvar": logvar}
-        return {"forward": frames[:B], "backward": frames[B:], "mu": mu, "logvar": logvar}
+        # one split (its backward joins the two gradients), not two slices (each of whose backward
+        # would zero-fill a gradient of all 2B rows)
+        fwd, bwd = frames.split(B)
+        return {"forward": fwd, "backward": bwd, "mu": mu, "logvar": logvar}
 
     def weight_parameters(self) -> list[torch.Tensor]:
         """Parameters counted by L_2 (weight matrices; biases excluded), each once."""
