@@ -68,24 +68,32 @@ struct Csr {
   const float* weight;
 };
 
+// One tile of vertex v of vertex-major `a` (V, C, B): its own channels `own[c]` and the ring
+// sum `ring[c] = sum_k M.weight[k] a[M.col[k], c]` over row v of M (A, or A^T in the backward).
+template <typename T>
+inline void own_and_ring(const float* a, Csr M, int64_t v, int C, int B, int b0, T* own, T* ring) {
+  const int64_t stride = int64_t(C) * B;
+  for (int c = 0; c < C; ++c) {
+    ring[c] = T{};
+    own[c] = load<T>(a + v * stride + c * B + b0);
+  }
+  for (int64_t k = M.rowptr[v]; k < M.rowptr[v + 1]; ++k) {
+    const T w = splat<T>(M.weight[k]);
+    const float* au = a + M.col[k] * stride + b0;
+    for (int c = 0; c < C; ++c) ring[c] += w * load<T>(au + c * B);
+  }
+}
+
 // T: a tile of W windows
 template <typename T, int W>
 void forward_tiles(const float* X, float* Y, const float* Ws, const float* Wr, const float* bias,
                    Csr A, const float* R, int64_t V, int Ci, int Co, int B, bool act) {
-  const int64_t xs = int64_t(Ci) * B, ys = int64_t(Co) * B;
+  const int64_t ys = int64_t(Co) * B;
   at::parallel_for(0, V, 128, [&](int64_t v0, int64_t v1) {
     T ax[CMAX], xv[CMAX];
     for (int64_t v = v0; v < v1; ++v) {
       for (int b0 = 0; b0 < B; b0 += W) {
-        for (int c = 0; c < Ci; ++c) {
-          ax[c] = T{};
-          xv[c] = load<T>(X + v * xs + c * B + b0);
-        }
-        for (int64_t k = A.rowptr[v]; k < A.rowptr[v + 1]; ++k) {
-          const T w = splat<T>(A.weight[k]);
-          const float* xu = X + A.col[k] * xs + b0;
-          for (int c = 0; c < Ci; ++c) ax[c] += w * load<T>(xu + c * B);
-        }
+        own_and_ring(X, A, v, Ci, B, b0, xv, ax);
         for (int o = 0; o < Co; ++o) {
           T acc = splat<T>(bias[o]);
           for (int c = 0; c < Ci; ++c) acc += Ws[o * Ci + c] * xv[c] + Wr[o * Ci + c] * ax[c];
@@ -112,7 +120,7 @@ void tanh_grad_tiles(const float* gy, const float* y, float* g, int64_t n) {
 template <typename T, int W>
 void backward_tiles(const float* G, const float* X, float* GX, const float* Ws, const float* Wr,
                     Csr At, float* partial, int64_t V, int Ci, int Co, int B) {
-  const int64_t xs = int64_t(Ci) * B, gs = int64_t(Co) * B;
+  const int64_t xs = int64_t(Ci) * B;
   const int n_sums = 2 * Co * Ci + Co;
   at::parallel_for(0, NCHUNK, 1, [&](int64_t k0, int64_t k1) {
     T sums[2 * CMAX * CMAX + CMAX];
@@ -122,15 +130,7 @@ void backward_tiles(const float* G, const float* X, float* GX, const float* Ws, 
       const int64_t v0 = V * chunk / NCHUNK, v1 = V * (chunk + 1) / NCHUNK;
       for (int64_t v = v0; v < v1; ++v) {
         for (int b0 = 0; b0 < B; b0 += W) {
-          for (int o = 0; o < Co; ++o) {
-            atg[o] = T{};
-            gv[o] = load<T>(G + v * gs + o * B + b0);
-          }
-          for (int64_t k = At.rowptr[v]; k < At.rowptr[v + 1]; ++k) {
-            const T w = splat<T>(At.weight[k]);
-            const float* gu = G + At.col[k] * gs + b0;
-            for (int o = 0; o < Co; ++o) atg[o] += w * load<T>(gu + o * B);
-          }
+          own_and_ring(G, At, v, Co, B, b0, gv, atg);
           for (int c = 0; c < Ci; ++c) {
             T s = T{};
             for (int o = 0; o < Co; ++o) s += Ws[o * Ci + c] * gv[o] + Wr[o * Ci + c] * atg[o];
