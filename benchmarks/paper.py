@@ -228,6 +228,10 @@ def target_status(summaries: dict) -> list[str]:
         names += [base] + sorted(n for n in summaries if n.startswith(base + "-"))
     for name in names:
         bd = summaries.get(name, {}).get("results", {}).get("bd")
+        div = diverged_variants(summaries.get(name, {}))
+        if "bd" in div:
+            add("all", name, f"training diverged at iteration {div['bd']}", False, "-")
+            continue
         if not bd or len(bd["errors"]) < 2:
             if name in TARGET_SETS:
                 add("all", name, "no record with the default recipe at the paper's configuration", None, "-")
@@ -347,6 +351,11 @@ def write_markdown(summaries: dict, device: str, path: Path) -> None:
     lines += target_status(summaries)
     for name, summ in summaries.items():
         per_variant, runs, cfg = summ["results"], summ["runs"], summ["config"]
+        if not per_variant:  # every variant diverged: the command and why, no tables
+            lines += [f"## {name}", "", f"Command: `python benchmarks/paper.py {' '.join(summ['argv'])}`. Recipe: "
+                      f"{summ.get('recipe', 'default')}.", ""]
+            lines += [f"{v}: {r['diverged']}" for v, r in runs.items() if "diverged" in r] + [""]
+            continue
         its = ", ".join(f"{v} {r['iteration']}" for v, r in per_variant.items())
         seqs = sorted(per_variant[next(iter(per_variant))].get("sequences", {}))
         lines += [f"## {name}", "",
