@@ -450,8 +450,6 @@ def main() -> None:
                     help="evaluate ours only (Table 1), also for bd: no baselines, completion or Fig. 3")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args()
-    from meshseq.io import json_text
-
     if args.markdown_only:
         write_markdown(collect(Path(args.records)), args.device, Path(args.results))
         print(f"wrote {args.results}")
