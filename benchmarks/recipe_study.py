@@ -78,6 +78,9 @@ def parse_sets(items: list[str]) -> dict:
         if value.lower() in ("true", "false"):
             out[key] = value.lower() == "true"
             continue
+        if value.lower() == "none":  # e.g. logvar_max=none (unbounded)
+            out[key] = None
+            continue
         for cast in (int, float):
             try:
                 out[key] = cast(value)

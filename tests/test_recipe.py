@@ -113,6 +113,31 @@ def test_latent_spread_and_collapse_warning():
     assert collapse_warning(3.0, float(latent_spread(alive)), 0.1) is None
 
 
+def test_latent_health_separates_the_mean_from_the_noise_and_is_logged(tmp_path):
+    import csv
+
+    from meshseq.train import latent_health
+
+    g = torch.Generator().manual_seed(0)
+    mu = 3.0 * torch.randn(6, 4, 16, generator=g)
+    logvar = torch.full((6, 4, 16), 2.0 * np.log(0.5))
+    logvar[..., 0] = 2.0 * np.log(8.5)  # one dimension's noise ran away
+    h = latent_health(mu, logvar)
+    assert float(h["latent_rms"]) == pytest.approx(float(mu.square().mean().sqrt()))
+    assert float(h["latent_sigma"]) == pytest.approx((15 * 0.5 + 8.5) / 16)
+    assert float(h["latent_spread"]) == pytest.approx(float(latent_spread(mu)))
+    # training writes them, with the motion term and the gradient norm, to metrics.csv
+    seq, feats = limb()
+    cfg = TrainConfig(iterations=4, window=8, batch=2, eval_every=0, log_every=2, checkpoint_every=0)
+    train(training_data(seq, feats), tmp_path / "run", cfg, SMALL, progress=False, log=None)
+    with open(tmp_path / "run" / "metrics.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["iteration"] for r in rows] == ["2", "4"]
+    for key in ("motion", "latent_rms", "latent_sigma", "grad_norm"):
+        assert all(float(r[key]) > 0 for r in rows), key
+    assert all(float(r["latent_sigma"]) <= 1.0 for r in rows)  # the default recipe's logvar_max = 0
+
+
 def test_training_warns_when_the_latent_collapses(tmp_path, monkeypatch):
     import meshseq.train as tr
 
@@ -334,3 +359,82 @@ def test_w_motion_adds_the_term_off_in_the_paper_recipe_on_in_the_default():
     assert torch.isclose(total_on, total_off + 2.0 * terms_on["motion"])
     with pytest.raises(MeshseqError, match="w_motion"):
         TrainConfig(w_motion=-1.0)
+
+
+def test_kl_weight_scales_with_the_vertices_in_the_default_recipe_only():
+    import meshseq.train as T
+
+    assert T.kl_weight(0.1, T.KL_REFERENCE_VERTICES, "vertices") == pytest.approx(0.1)
+    assert T.kl_weight(0.1, 8431, "vertices") == pytest.approx(0.8431)
+    assert T.kl_weight(0.1, 8431, "none") == 0.1
+    assert RECIPES["paper"]["kl_scale"] == "none" and RECIPES["default"]["kl_scale"] == "vertices"
+    assert TrainConfig.from_dict({}).kl_scale == "none"  # runs stored before the option keep one weight
+    with pytest.raises(MeshseqError, match="--kl-scale"):
+        TrainConfig(kl_scale="faces")
+    # the objective weighs the KL it logs by the scaled weight
+    seq, feats = limb()
+    model = small_model(seq)
+    windows = torch.as_tensor(feats[None, :8] / np.abs(feats).max() * 0.9, dtype=torch.float32)
+    cfg = dict(window=8, w_motion=0.0)
+    torch.manual_seed(1)
+    base, terms = WindowLoss(model, TrainConfig(kl_scale="none", **cfg))(windows, sample=False)
+    torch.manual_seed(1)
+    scaled, _ = WindowLoss(model, TrainConfig(kl_scale="vertices", **cfg))(windows, sample=False)
+    factor = seq.n_vertices / T.KL_REFERENCE_VERTICES
+    assert terms["kl"] > 0 and factor != 1.0
+    assert torch.isclose(scaled, base + 0.1 * (factor - 1.0) * terms["kl"], rtol=1e-5)
+
+
+def test_logvar_max_bounds_the_sampling_noise_and_is_stored(tmp_path):
+    import json
+
+    import meshseq
+    from meshseq.cli import main
+    from meshseq.io import save_sequence
+
+    seq, feats = limb()
+    torch.manual_seed(0)
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    bounded = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, logvar_max=0.0, **SMALL), topo)
+    free = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, **SMALL), topo)
+    free.load_state_dict(bounded.state_dict())
+    with torch.no_grad():
+        free.fc_logvar.bias.fill_(3.0)  # a head asking for noise of spread e^1.5
+        bounded.fc_logvar.bias.fill_(3.0)
+    x = torch.as_tensor(feats[:4] / np.abs(feats).max() * 0.9, dtype=torch.float32)
+    with torch.no_grad():
+        _, lv_free = free.encode(x)
+        _, lv_bounded = bounded.encode(x)
+    assert float(lv_free.max()) > 1.0 and float(lv_bounded.max()) <= 0.0
+    assert torch.equal(lv_bounded, lv_free.clamp(max=0.0))
+    # sampled roll-outs draw z = mu + exp(logvar / 2) eps with the bounded spread
+    windows = x[None]
+    torch.manual_seed(2)
+    out = bounded(windows, sample=True)
+    assert float(out["logvar"].max()) <= 0.0
+    with pytest.raises(MeshseqError, match="logvar_max"):
+        ModelConfig(n_vertices=10, logvar_max=float("nan"))
+    with pytest.raises(MeshseqError, match="--logvar-max"):
+        TrainConfig(logvar_max="big")
+    assert RECIPES["paper"]["logvar_max"] is None and RECIPES["default"]["logvar_max"] == 0.0
+    assert TrainConfig.from_dict({}).logvar_max is None
+    # the CLI stores it in both configs; "none" asks for the paper's unbounded head
+    data = tmp_path / "limb.npz"
+    save_sequence(seq, data)
+    common = ["--iterations", "1", "--window", "6", "--batch", "2", "--latent", "8", "--lstm-layers", "1",
+              "--no-progress", "--eval-every", "0"]
+
+    def stored(run):
+        meta = json.loads(next((run / "checkpoints").iterdir()).joinpath("model.json").read_text())
+        return meta["train"]["logvar_max"], meta["model"]["logvar_max"]
+
+    assert main(["train", str(data), "--out", str(tmp_path / "d"), *common]) == 0
+    assert stored(tmp_path / "d") == (0.0, 0.0)
+    assert main(["train", str(data), "--out", str(tmp_path / "n"), "--logvar-max", "none", *common]) == 0
+    assert stored(tmp_path / "n") == (None, None)
+    assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper", "--logvar-max", "-1",
+                 *common]) == 0
+    assert stored(tmp_path / "p") == (-1.0, -1.0)
+    assert meshseq.load(tmp_path / "p").net.config.logvar_max == -1.0
+    with pytest.raises(SystemExit):  # argparse's usage error, naming the option
+        main(["train", str(data), "--out", str(tmp_path / "x"), "--logvar-max", "big", *common])

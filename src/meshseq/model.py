@@ -79,6 +79,10 @@ class ModelConfig:
     training frames around it per channel (buffers ``input_offset``/``input_spread``, set by
     training with ``set_input_norm`` and stored with the weights): the frames then differ by O(1)
     at the encoder's input, not by the few hundredths they differ by in the scaled space.
+
+    ``logvar_max`` (None = the paper: unbounded): the VAE head's log-variance is clamped to at
+    most this, so the sampling noise ``exp(logvar / 2)`` never exceeds ``exp(logvar_max / 2)``
+    (0: the prior's unit spread; see ``meshseq.train.RECIPES`` for why).
     """
 
     n_vertices: int
@@ -91,6 +95,7 @@ class ModelConfig:
     init_state: float = 0.1
     step_scale: list[float] | None = None
     input_norm: bool = False
+    logvar_max: float | None = None
 
     def __post_init__(self):
         ModelConfig.check_options(self.__dict__)
@@ -151,6 +156,10 @@ def _model_config_problem(values: dict) -> tuple[str, object, str] | None:
         return "init_state", values["init_state"], "expected a number"
     if not isinstance(values["input_norm"], (bool, np.bool_)):
         return "input_norm", values["input_norm"], "expected true or false"
+    bound = values["logvar_max"]
+    if bound is not None and (isinstance(bound, bool) or not isinstance(bound, (int, float, np.floating))
+                              or not math.isfinite(bound)):
+        return "logvar_max", bound, "expected a number or null"
     scale = values["step_scale"]
     if scale is not None:
         try:
@@ -460,7 +469,10 @@ class BDLSTM(nn.Module):
             for conv in self.convs:
                 x = torch.tanh(conv(x))
         e = fc.encode(x.reshape(-1, x.shape[-1]))
-        return self.fc_mu(e), self.fc_logvar(e)
+        logvar = self.fc_logvar(e)
+        if self.config.logvar_max is not None:
+            logvar = logvar.clamp(max=self.config.logvar_max)
+        return self.fc_mu(e), logvar
 
     def _decode_vm(self, h: torch.Tensor, fc: _FC, residual: torch.Tensor | None = None) -> torch.Tensor:
         """``(B, L)`` -> ``dX`` ``(V, C, B)`` (``residual + dX`` when a residual is given)."""

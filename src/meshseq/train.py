@@ -61,8 +61,8 @@ from meshseq.mesh import Topology, topology_hash
 from meshseq.model import BDLSTM, ModelConfig
 
 PRECISIONS = ("float32", "bf16")
-METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "latent_spread", "heldout_rec",
-                 "heldout_bd")
+METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "motion", "latent_spread",
+                 "latent_rms", "latent_sigma", "grad_norm", "heldout_rec", "heldout_bd")
 
 
 STEP_SCALES = ("none", "data")
@@ -71,9 +71,14 @@ STEP_SCALES = ("none", "data")
 FC_LRS = ("fan-in", "none")
 #: The FC fan-in at which the recipe study chose lr = 1e-3 (the 1,000-vertex body set).
 FC_REFERENCE_FAN_IN = 9000
+#: ``kl_scale``: ``vertices`` multiplies w_kl by ``V / KL_REFERENCE_VERTICES`` (see ``kl_weight``);
+#: ``none``: w_kl as given (the paper).
+KL_SCALES = ("vertices", "none")
+#: The mesh size at which the recipe study chose w_kl = 0.1 (the 1,000-vertex body set).
+KL_REFERENCE_VERTICES = 1000
 #: Fields added to TrainConfig after runs were stored without them: the value that reproduces
 #: those runs (TrainConfig.from_dict fills it in when a stored config lacks the field).
-LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0}
+LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "logvar_max": None}
 
 @dataclass
 class TrainConfig:
@@ -98,6 +103,8 @@ class TrainConfig:
     step_scale: str = "none"
     input_norm: bool = True  # the default recipe (RECIPES); the paper: False
     fc_lr: str = "fan-in"  # the default recipe (RECIPES); the paper: "none"
+    kl_scale: str = "vertices"  # the default recipe (RECIPES); the paper: "none"
+    logvar_max: float | None = 0.0  # the default recipe (RECIPES); the paper: None (unbounded)
     sample: bool = True
     eval_every: int = 100
     checkpoint_every: int = 500
@@ -126,6 +133,12 @@ class TrainConfig:
             raise MeshseqError(f"--step-scale {self.step_scale!r}: expected one of {', '.join(STEP_SCALES)}")
         if self.fc_lr not in FC_LRS:
             raise MeshseqError(f"--fc-lr {self.fc_lr!r}: expected one of {', '.join(FC_LRS)}")
+        if self.logvar_max is not None and not (isinstance(self.logvar_max, (int, float))
+                                                and not isinstance(self.logvar_max, bool)
+                                                and math.isfinite(self.logvar_max)):
+            raise MeshseqError(f"--logvar-max {self.logvar_max!r}: expected a number")
+        if self.kl_scale not in KL_SCALES:
+            raise MeshseqError(f"--kl-scale {self.kl_scale!r}: expected one of {', '.join(KL_SCALES)}")
         if self.precision not in PRECISIONS:
             raise MeshseqError(f"--precision {self.precision!r}: expected one of {', '.join(PRECISIONS)}")
 
@@ -178,13 +191,30 @@ class TrainConfig:
 #:   at h15 after 1 given frame 495 and 490 (default without it: 425 and 489; zero velocity
 #:   1030), after 3 given frames 534 and 499 (413 and 467). Weight 1 changed nothing (motion 21%).
 #:
+#: Two guards for meshes larger than the body set, where the four choices above ran away on
+#: horse-gallop (8,431 vertices: iteration 822 in one run, a KL of 5,388 nats at iteration 160 in
+#: another; docs/recipe_study.md "Large meshes: the latent runs away"). Neither changes the
+#: body set: ``kl_scale`` is exactly w_kl at 1,000 vertices, and ``logvar_max`` only acts where
+#: the encoder asks for more noise than the prior's.
+#:
+#: * ``kl_scale = "vertices"`` (paper: one w_kl). L_rec sums over V x 9 values, L_KL over the
+#:   latent, so with one w_kl the KL's pull per unit of reconstruction error falls as 1 / V. On
+#:   horse-gallop with one w_kl the latent mean grew to an RMS of 5.9 (KL 2,300 nats at iteration
+#:   160, with the noise bounded); with w_kl x V / 1000 it stayed below 1.5 (KL <= 170 nats) over
+#:   the same 240 iterations.
+#: * ``logvar_max = 0`` (paper: unbounded). The motion term rewards roll-outs that move, and a
+#:   noisier z moves them: on horse-gallop a few latent dimensions' noise ran away (mean spread
+#:   1.02 -> 1.98, KL 250 -> 5,388 nats, L_rec 337 -> 2,005 between iterations 150 and 170), as
+#:   in the no-kl ablation on the body set. The noise is bounded at the prior's (sigma <= 1).
+#:
 #: Measured and left out: ``step_scale = "data"`` (decoder output in units of the RMS frame
 #: change) learns slower (held-out L_rec 6.5 against 4.3 at 600 iterations); a deterministic
 #: latent (no noise, no KL) changed little without the normalisation (864 against 834).
-RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "given", "step_scale", "input_norm", "fc_lr")
+RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "given", "step_scale", "input_norm", "fc_lr",
+                  "kl_scale", "logvar_max")
 RECIPES = {
     "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "w_motion": 0.0, "given": 1, "step_scale": "none",
-              "input_norm": False, "fc_lr": "none"},
+              "input_norm": False, "fc_lr": "none", "kl_scale": "none", "logvar_max": None},
     "default": {name: TrainConfig.__dataclass_fields__[name].default for name in RECIPE_OPTIONS},
 }
 
@@ -196,6 +226,18 @@ RECIPES = {
 def kl_divergence(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
     """KL(N(mu, exp(logvar)) || N(0, I)) summed over the last axis, averaged over the rest."""
     return (-0.5 * (1.0 + logvar - mu.square() - logvar.exp())).sum(-1).mean()
+
+
+def kl_weight(w_kl: float, n_vertices: int, kl_scale: str) -> float:
+    """The weight on L_KL: ``w_kl``, times ``n_vertices / KL_REFERENCE_VERTICES`` with
+    ``kl_scale="vertices"``.
+
+    L_rec, L_bd and L_motion are sums over the V x 9 feature values of a frame, L_KL a sum over
+    the latent: with one w_kl, the KL's pull per unit of reconstruction falls as 1 / V, so a mesh
+    8.4 times the body set's (horse-gallop) trains a nearly unregularised latent. Scaling w_kl
+    with V keeps the ratio the body set was tuned at (exactly w_kl there).
+    """
+    return float(w_kl) * (n_vertices / KL_REFERENCE_VERTICES if kl_scale == "vertices" else 1.0)
 
 
 def frame_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -213,7 +255,7 @@ def window_losses(out: dict, windows: torch.Tensor) -> dict:
         rec = rec + frame_error(bwd[:, 1:], windows.flip(1)[:, 1:]).mean()
         bd = frame_error(fwd, bwd.flip(1)).mean()
     kl = kl_divergence(out["mu"], out["logvar"]) if out["mu"].numel() else fwd.new_zeros(())
-    return {"rec": rec, "bd": bd, "kl": kl, "latent_spread": latent_spread(out["mu"])}
+    return {"rec": rec, "bd": bd, "kl": kl, **latent_health(out["mu"], out["logvar"])}
 
 
 def motion_loss(out: dict, windows: torch.Tensor) -> torch.Tensor:
@@ -231,6 +273,17 @@ def motion_loss(out: dict, windows: torch.Tensor) -> torch.Tensor:
     if out["backward"] is not None:
         loss = loss + (speed(out["backward"]).add(1e-12).sqrt() - true_speed.flip(1)).square().mean()
     return loss
+
+
+def latent_health(mu: torch.Tensor, logvar: torch.Tensor) -> dict:
+    """Detached diagnostics of the VAE head's output ``mu``, ``logvar`` ``(..., L)``: which part of
+    the KL moves. ``latent_spread`` (see below), ``latent_rms`` the root mean square of ``mu``,
+    ``latent_sigma`` the mean posterior standard deviation ``exp(logvar / 2)`` (the prior's: 1).
+    """
+    if not mu.numel():
+        return {"latent_spread": mu.new_zeros(())}
+    return {"latent_spread": latent_spread(mu), "latent_rms": mu.detach().square().mean().sqrt(),
+            "latent_sigma": logvar.detach().mul(0.5).exp().mean()}
 
 
 def latent_spread(mu: torch.Tensor) -> torch.Tensor:
@@ -253,8 +306,8 @@ class WindowLoss(nn.Module):
     def __init__(self, model: BDLSTM, config: TrainConfig):
         super().__init__()
         self.model = model
-        self.weights = {"rec": config.w_rec, "bd": config.w_bd, "kl": config.w_kl, "l2": config.w_l2,
-                        "motion": config.w_motion}
+        self.weights = {"rec": config.w_rec, "bd": config.w_bd, "l2": config.w_l2, "motion": config.w_motion,
+                        "kl": kl_weight(config.w_kl, model.config.n_vertices, config.kl_scale)}
 
     def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1):
         out = self.model(windows, sample=sample, given=given)
@@ -602,6 +655,7 @@ def train(
             raise MeshseqError(f"--holdout {config.holdout}: leaves no training frames")
         scaling = Scaling.fit(train_feats, mode=config.scaling)
         model_config.input_norm = bool(config.input_norm)
+        model_config.logvar_max = None if config.logvar_max is None else float(config.logvar_max)
 
     if data.consistency != config.consistency:
         stored = f"{found.folder} was trained on" if found is not None else "--consistency asks for"
@@ -747,6 +801,7 @@ def train(
             if is_main and (config.log_every and it % config.log_every == 0 or it == config.iterations):
                 row = {"iteration": it, "seconds": round(time.perf_counter() - t0, 3), "loss": float(total.detach())}
                 row.update({k: float(v) for k, v in terms.items()})
+                row["grad_norm"] = float(health[-1])
             if is_main and (config.eval_every and it % config.eval_every == 0 or it == config.iterations):
                 row = row or {"iteration": it, "seconds": round(time.perf_counter() - t0, 3)}
                 row.update(evaluate())

@@ -72,6 +72,14 @@ def register(sub) -> None:
     l.add_argument("--fc-lr", choices=("fan-in", "none"), default=None,
                    help="fan-in: the big FC weight's learning rate times min(1, 9000 / (vertices x 9)), "
                    "so large meshes train stably (the default recipe); none: one rate for all (the paper)")
+    l.add_argument("--kl-scale", choices=("vertices", "none"), default=None,
+                   help="vertices: the weight of L_KL times vertices / 1000, so its balance with the "
+                   "per-vertex sums of L_rec does not depend on the mesh size (the default recipe); "
+                   "none: --w-kl as given (the paper)")
+    l.add_argument("--logvar-max", type=_number_or_none, default=None, metavar="X|none",
+                   help="clamp the encoder's log-variance to at most X, so the sampling noise never "
+                   "exceeds exp(X / 2) (the default recipe: 0, the prior's spread); none: unbounded "
+                   "(the paper)")
     l.add_argument("--no-kl", action="store_true", help="drop L_KL (paper Table 1 ablation)")
     l.add_argument("--no-l2", action="store_true", help="drop L_2 (paper Fig. 3 ablation)")
     d = p.add_argument_group("data")
@@ -88,6 +96,20 @@ def register(sub) -> None:
     o.add_argument("--keep", type=int, default=2, help="checkpoints kept (newest)")
     o.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_train)
+
+
+def _number_or_none(text: str):
+    """``--logvar-max`` values: a number, or ``none`` (unbounded; kept apart from "not given")."""
+    if text.lower() == "none":
+        return _UNBOUNDED
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or none, got {text!r}") from None
+
+
+#: ``--logvar-max none``: distinct from the option's default (None = take it from --recipe)
+_UNBOUNDED = "none"
 
 
 def _train(args) -> int:
@@ -108,7 +130,7 @@ def _train(args) -> int:
     recipe = dict(RECIPES[args.recipe])
     for name in RECIPE_OPTIONS:
         if getattr(args, name) is not None:
-            recipe[name] = getattr(args, name)
+            recipe[name] = None if getattr(args, name) is _UNBOUNDED else getattr(args, name)
     if args.no_kl:
         recipe["w_kl"] = 0.0
     if args.no_l2:
