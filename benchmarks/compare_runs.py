@@ -1,0 +1,65 @@
+"""Learning curves of several training runs side by side: one panel per metrics.csv column.
+
+    python benchmarks/compare_runs.py H-before=before H-logvar=logvar_max H-kl=kl_scale H-both=both \\
+        --keys kl,rec,latent_rms,latent_sigma --log kl -o docs/img/horse_latent_runaway.png
+
+Each argument is ``RUN`` or ``RUN=LABEL`` (RUN: a ``meshseq train`` output folder, or its
+metrics.csv). Columns are the training metrics (``meshseq.train.METRIC_FIELDS``); ``--log``
+names the panels drawn on a log scale. Rows without a value (e.g. held-out rows) are skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+
+def main(argv=None) -> int:
+    from meshseq.plots import read_metrics_csv, save_figure
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", help="RUN or RUN=LABEL")
+    ap.add_argument("--keys", default="kl,rec,latent_rms,latent_sigma", help="comma-separated metrics columns")
+    ap.add_argument("--log", default="kl", help="comma-separated columns drawn on a log scale")
+    ap.add_argument("--until", type=int, default=None, help="last iteration shown")
+    ap.add_argument("-o", "--output", required=True, help="PNG to write")
+    ap.add_argument("--force", action="store_true", help="overwrite OUTPUT")
+    args = ap.parse_args(argv)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [k for k in args.keys.split(",") if k]
+    log = set(args.log.split(","))
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4), squeeze=False)
+    for spec in args.runs:
+        path, _, label = spec.partition("=")
+        csv_path = Path(path) / "metrics.csv" if Path(path).is_dir() else Path(path)
+        if not csv_path.is_file():
+            raise SystemExit(f"{csv_path}: no metrics.csv")
+        m = read_metrics_csv(csv_path)
+        it = np.asarray(m["iteration"], dtype=np.float64)
+        for ax, key in zip(axes[0], keys):
+            if key not in m:
+                raise SystemExit(f"{csv_path}: no column {key!r}")
+            y = np.asarray(m[key], dtype=np.float64)
+            keep = np.isfinite(y) & (it <= (args.until or np.inf))
+            ax.plot(it[keep], y[keep], label=label or Path(path).name, linewidth=1.2)
+    for ax, key in zip(axes[0], keys):
+        ax.set_title(key)
+        ax.set_xlabel("iteration")
+        ax.grid(alpha=0.3)
+        if key in log:
+            ax.set_yscale("log")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    print(f"wrote {save_figure(fig, args.output, force=args.force)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
