@@ -83,6 +83,16 @@ def test_cpu_kernel_gradients_have_the_same_bits_with_any_thread_count(ring):
     assert all(torch.equal(a, c) for a, c in zip(g1, g3))
 
 
+def test_each_kind_of_cpu_gets_its_own_build():
+    """-march=native builds must not be shared between CPUs with different instruction sets."""
+    avx2 = "processor\t: 0\nflags\t\t: fpu sse2 avx avx2 fma\nprocessor\t: 1\nflags\t\t: fpu sse2 avx avx2 fma\n"
+    avx512 = "processor\t: 0\nflags\t\t: fpu sse2 avx avx2 fma avx512f avx512bw\n"
+    a, b = kernels.cpu_signature(avx2), kernels.cpu_signature(avx512)
+    assert a != b and len(a) == len(b) == 8
+    assert kernels.cpu_signature(avx2.replace("avx avx2", "avx2 avx")) == a  # the set, not the order
+    assert kernels.cpu_signature() == kernels.cpu_signature()  # this machine: stable
+
+
 def test_a_stale_build_lock_is_removed_and_a_fresh_one_kept(tmp_path):
     """A killed build leaves build/lock, and torch's builder would wait for it forever."""
     import os

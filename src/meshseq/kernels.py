@@ -10,7 +10,7 @@ full-size passes forward and more backward. ``MeshConvFused`` saves only ``x`` a
 activation's output and has two implementations of the same arithmetic:
 
 * CPU, float32: ``csrc/mesh_conv.cpp``, compiled on first use with the machine's C++ compiler
-  (``torch.utils.cpp_extension``; cached in ``meshseq_kernels-PY-TORCH`` under
+  (``torch.utils.cpp_extension``; cached in ``meshseq_kernels-PY-TORCH-CPU`` under
   ``TORCH_EXTENSIONS_DIR``, by default ``~/.cache/torch_extensions``). Forward: each vertex gathers its neighbours' ``(C, B)`` blocks
   (rows of the vertex-major layout), applies both maps, the bias, tanh and the residual while the
   block is in registers, vectorised over the windows: ``x`` read once, ``y`` written once.
@@ -59,7 +59,7 @@ def cpu_kernels_available() -> bool:
             from torch.utils.cpp_extension import get_default_build_root, load
 
             py = f"py{sys.version_info[0]}{sys.version_info[1]}"
-            build = Path(get_default_build_root()) / f"meshseq_kernels-{py}-torch{torch.__version__}"
+            build = Path(get_default_build_root()) / f"meshseq_kernels-{py}-torch{torch.__version__}-{cpu_signature()}"
             build.mkdir(parents=True, exist_ok=True)
             clear_stale_lock(build)
             load("meshseq_kernels", [str(_SOURCE)], extra_cflags=["-O3", "-march=native", "-fopenmp"],
@@ -71,6 +71,28 @@ def cpu_kernels_available() -> bool:
                           "training on CPU uses the slower torch-op path", RuntimeWarning, stacklevel=2)
             _cpu_kernels = False
     return _cpu_kernels
+
+
+def cpu_signature(cpuinfo: str | None = None) -> str:
+    """8 hex digits naming this CPU's instruction sets (the ``flags`` of ``/proc/cpuinfo``; elsewhere
+    the platform's processor name), part of the build folder's name.
+
+    The kernels are compiled with ``-march=native``: a build made on a CPU with AVX-512 would
+    crash (illegal instruction) when loaded on one without, e.g. from a home folder shared by
+    the nodes of a cluster, so each kind of CPU gets its own build. ``cpuinfo``: the text of
+    ``/proc/cpuinfo`` (read when None).
+    """
+    import hashlib
+    import platform
+
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    flags = next((line.split(":", 1)[1] for line in cpuinfo.splitlines() if line.startswith(("flags", "Features"))), None)
+    key = " ".join(sorted(flags.split())) if flags else f"{platform.machine()} {platform.processor()}"
+    return hashlib.sha1(key.encode()).hexdigest()[:8]
 
 
 def clear_stale_lock(build: Path, max_age_s: float = 600.0) -> bool:
