@@ -35,6 +35,19 @@ def limb():
     return seq, feats
 
 
+#: a one-iteration ``meshseq train`` on a tiny model (CLI option tests)
+TINY_CLI = ["--iterations", "1", "--window", "6", "--batch", "2", "--latent", "8", "--lstm-layers", "1",
+            "--no-progress", "--eval-every", "0"]
+
+
+def stored_configs(run):
+    """``(train, model)`` configs of the first checkpoint of ``run``."""
+    import json
+
+    meta = json.loads(next((run / "checkpoints").iterdir()).joinpath("model.json").read_text())
+    return meta["train"], meta["model"]
+
+
 def small_model(seq, variant="bd", step_scale=None, seed=0):
     torch.manual_seed(seed)
     cfg = ModelConfig(n_vertices=seq.n_vertices, variant=variant, step_scale=step_scale, **SMALL)
@@ -220,20 +233,13 @@ def test_input_norm_standardises_the_encoder_input_and_is_stored(tmp_path):
 
 
 def test_cli_recipe_sets_the_options_and_flags_override(tmp_path):
-    import json
-
     from meshseq.cli import main
     from meshseq.io import save_sequence
 
     seq, _ = limb()
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
-    common = ["--iterations", "1", "--window", "6", "--batch", "2", "--latent", "8", "--lstm-layers", "1",
-              "--no-progress", "--eval-every", "0"]
-
-    def stored(run):
-        meta = json.loads(next((run / "checkpoints").iterdir()).joinpath("model.json").read_text())
-        return meta["train"], meta["model"]
+    common, stored = TINY_CLI, stored_configs
 
     assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper", *common]) == 0
     train_opts, model_opts = stored(tmp_path / "p")
@@ -386,8 +392,6 @@ def test_kl_weight_scales_with_the_vertices_in_the_default_recipe_only():
 
 
 def test_logvar_max_bounds_the_sampling_noise_and_is_stored(tmp_path):
-    import json
-
     import meshseq
     from meshseq.cli import main
     from meshseq.io import save_sequence
@@ -421,12 +425,11 @@ def test_logvar_max_bounds_the_sampling_noise_and_is_stored(tmp_path):
     # the CLI stores it in both configs; "none" asks for the paper's unbounded head
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
-    common = ["--iterations", "1", "--window", "6", "--batch", "2", "--latent", "8", "--lstm-layers", "1",
-              "--no-progress", "--eval-every", "0"]
+    common = TINY_CLI
 
     def stored(run):
-        meta = json.loads(next((run / "checkpoints").iterdir()).joinpath("model.json").read_text())
-        return meta["train"]["logvar_max"], meta["model"]["logvar_max"]
+        train_opts, model_opts = stored_configs(run)
+        return train_opts["logvar_max"], model_opts["logvar_max"]
 
     assert main(["train", str(data), "--out", str(tmp_path / "d"), *common]) == 0
     assert stored(tmp_path / "d") == (0.0, 0.0)
