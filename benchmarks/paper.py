@@ -214,6 +214,20 @@ def _seed_cell(variant: str, means: list[dict], avg: float) -> str:
     return f"{variant} diverged in {n_div} of {len(means)} seeds" if n_div else f"{variant} {avg:.1f}"
 
 
+def recipe_text(options: dict | None) -> str:
+    """How a record's training options differ from today's default recipe, in a few words.
+
+    Options a record lacks were added after it was made: it trained with their legacy values
+    (``train.LEGACY_TRAIN_DEFAULTS``). Records without options predate the motion term."""
+    from meshseq.train import LEGACY_TRAIN_DEFAULTS, RECIPES
+
+    if not options:
+        return "w_motion 0 (no options recorded)"
+    used = {**LEGACY_TRAIN_DEFAULTS, **options}
+    diff = [f"{k} {used[k]}" for k, v in RECIPES["default"].items() if k in used and used[k] != v]
+    return "default recipe" if not diff else "default recipe except " + ", ".join(diff)
+
+
 def target_status(summaries: dict) -> list[str]:
     """The table "where the targets stand", computed from the records: one row per target and
     data set, with the measured figure and met / not met (never edited by hand)."""
@@ -236,9 +250,7 @@ def target_status(summaries: dict) -> list[str]:
             if name in TARGET_SETS:
                 add("all", name, "no record with the default recipe at the paper's configuration", None, "-")
             continue  # tagged records without baselines: Table 1, below
-        opts = summaries[name]["runs"].get("bd", {}).get("options")
-        motion_term = "w_motion 0 (no options recorded)" if not opts else f"w_motion {opts['w_motion']:g}"
-        its = f"{bd['iteration']} / {PAPER_ITERATIONS}; {motion_term}"
+        its = f"{bd['iteration']} / {PAPER_ITERATIONS}; {recipe_text(summaries[name]['runs'].get('bd', {}).get('options'))}"
         ratios = []
         for key in ("errors", "errors_aligned"):
             errs = bd[key]
