@@ -435,6 +435,11 @@ def test_logvar_max_bounds_the_sampling_noise_and_is_stored(tmp_path):
     assert stored(tmp_path / "d") == (0.0, 0.0)
     assert main(["train", str(data), "--out", str(tmp_path / "n"), "--logvar-max", "none", *common]) == 0
     assert stored(tmp_path / "n") == (None, None)
+    # other options' "none" (the same interned string from Python) stays the string "none"
+    assert main(["train", str(data), "--out", str(tmp_path / "s"), "--kl-scale", "none", "--fc-lr", "none",
+                 *common]) == 0
+    train_opts, _ = stored_configs(tmp_path / "s")
+    assert train_opts["kl_scale"] == "none" and train_opts["fc_lr"] == "none" and train_opts["logvar_max"] == 0.0
     assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper", "--logvar-max", "-1",
                  *common]) == 0
     assert stored(tmp_path / "p") == (-1.0, -1.0)

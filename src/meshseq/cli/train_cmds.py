@@ -108,8 +108,9 @@ def _number_or_none(text: str):
         raise argparse.ArgumentTypeError(f"expected a number or none, got {text!r}") from None
 
 
-#: ``--logvar-max none``: distinct from the option's default (None = take it from --recipe)
-_UNBOUNDED = "none"
+#: ``--logvar-max none``: distinct from the option's default (None = take it from --recipe) and
+#: from every other option's "none" string (an object of its own, so no interned "none" is it)
+_UNBOUNDED = object()
 
 
 def _train(args) -> int:
