@@ -140,6 +140,12 @@ class ModelConfig:
         return ModelConfig(**d)
 
 
+def is_finite_number(x) -> bool:
+    """A finite int or float (numpy's too), not a bool: what a numeric option may hold."""
+    return (isinstance(x, (int, float, np.floating)) and not isinstance(x, bool)
+            and math.isfinite(x))
+
+
 def _model_config_problem(values: dict) -> tuple[str, object, str] | None:
     """``(field, value, what was expected)`` of the first invalid ModelConfig field; None if valid."""
     def is_int(x):
@@ -156,10 +162,8 @@ def _model_config_problem(values: dict) -> tuple[str, object, str] | None:
         return "init_state", values["init_state"], "expected a number"
     if not isinstance(values["input_norm"], (bool, np.bool_)):
         return "input_norm", values["input_norm"], "expected true or false"
-    bound = values["logvar_max"]
-    if bound is not None and (isinstance(bound, bool) or not isinstance(bound, (int, float, np.floating))
-                              or not math.isfinite(bound)):
-        return "logvar_max", bound, "expected a number or null"
+    if values["logvar_max"] is not None and not is_finite_number(values["logvar_max"]):
+        return "logvar_max", values["logvar_max"], "expected a number or null"
     scale = values["step_scale"]
     if scale is not None:
         try:

@@ -58,7 +58,7 @@ from meshseq.data.windows import Split, WindowSampler, check_holdout, heldout_ro
 from meshseq.errors import MeshseqError
 from meshseq.kernels import keep_freed_memory
 from meshseq.mesh import Topology, topology_hash
-from meshseq.model import BDLSTM, ModelConfig
+from meshseq.model import BDLSTM, ModelConfig, is_finite_number
 
 PRECISIONS = ("float32", "bf16")
 METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "motion", "latent_spread",
@@ -133,9 +133,7 @@ class TrainConfig:
             raise MeshseqError(f"--step-scale {self.step_scale!r}: expected one of {', '.join(STEP_SCALES)}")
         if self.fc_lr not in FC_LRS:
             raise MeshseqError(f"--fc-lr {self.fc_lr!r}: expected one of {', '.join(FC_LRS)}")
-        if self.logvar_max is not None and not (isinstance(self.logvar_max, (int, float))
-                                                and not isinstance(self.logvar_max, bool)
-                                                and math.isfinite(self.logvar_max)):
+        if self.logvar_max is not None and not is_finite_number(self.logvar_max):
             raise MeshseqError(f"--logvar-max {self.logvar_max!r}: expected a number")
         if self.kl_scale not in KL_SCALES:
             raise MeshseqError(f"--kl-scale {self.kl_scale!r}: expected one of {', '.join(KL_SCALES)}")
