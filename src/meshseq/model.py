@@ -141,7 +141,7 @@ class ModelConfig:
 
 
 def is_finite_number(x) -> bool:
-    """A finite int or float (numpy's too), not a bool: what a numeric option may hold."""
+    """A finite int or float (numpy floats too), not a bool: what a numeric option may hold."""
     return (isinstance(x, (int, float, np.floating)) and not isinstance(x, bool)
             and math.isfinite(x))
 
