@@ -6,6 +6,10 @@
 Each argument is ``RUN`` or ``RUN=LABEL`` (RUN: a ``meshseq train`` output folder, or its
 metrics.csv). Columns are the training metrics (``meshseq.train.METRIC_FIELDS``); ``--log``
 names the panels drawn on a log scale. Rows without a value (e.g. held-out rows) are skipped.
+
+It also prints, per run, the loss spikes of ``--spike-key`` (default ``rec``): logged rows whose
+value exceeds ``--spike-factor`` times the median of the ``SPIKE_WINDOW`` rows before it, the
+worst such ratio, and the median of the last ``SPIKE_WINDOW`` rows (where the run ended up).
 """
 
 from __future__ import annotations
@@ -16,6 +20,20 @@ from pathlib import Path
 import numpy as np
 
 
+#: logged rows a spike is measured against (the median of the rows before it)
+SPIKE_WINDOW = 10
+
+
+def spikes(values: np.ndarray, factor: float) -> tuple[int, float]:
+    """``(count, worst)``: rows of ``values`` (T,) above ``factor`` x the median of the
+    ``SPIKE_WINDOW`` rows before them, and the largest ratio to that median (NaN rows skipped)."""
+    v = values[np.isfinite(values)]
+    ratios = np.array([v[i] / np.median(v[i - SPIKE_WINDOW:i]) for i in range(SPIKE_WINDOW, len(v))])
+    if not len(ratios):
+        return 0, float("nan")
+    return int((ratios > factor).sum()), float(ratios.max())
+
+
 def main(argv=None) -> int:
     from meshseq.plots import read_metrics_csv, save_figure
 
@@ -23,7 +41,9 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", help="RUN or RUN=LABEL")
     ap.add_argument("--keys", default="kl,rec,latent_rms,latent_sigma", help="comma-separated metrics columns")
     ap.add_argument("--log", default="kl", help="comma-separated columns drawn on a log scale")
-    ap.add_argument("--until", type=int, default=None, help="last iteration shown")
+    ap.add_argument("--until", type=int, default=None, help="last iteration shown (and counted)")
+    ap.add_argument("--spike-key", default="rec", help="the column whose spikes are counted")
+    ap.add_argument("--spike-factor", type=float, default=2.0, help="a spike: above this x the recent median")
     ap.add_argument("-o", "--output", required=True, help="PNG to write")
     ap.add_argument("--force", action="store_true", help="overwrite OUTPUT")
     args = ap.parse_args(argv)
@@ -49,6 +69,12 @@ def main(argv=None) -> int:
             y = np.asarray(m[key], dtype=np.float64)
             keep = np.isfinite(y) & (it <= (args.until or np.inf))
             ax.plot(it[keep], y[keep], label=label or Path(path).name, linewidth=1.2)
+        if args.spike_key in m:
+            y = np.asarray(m[args.spike_key], dtype=np.float64)[it <= (args.until or np.inf)]
+            count, worst = spikes(y, args.spike_factor)
+            end = float(np.median(y[np.isfinite(y)][-SPIKE_WINDOW:]))
+            print(f"{label or Path(path).name}: {count} {args.spike_key} spikes (> {args.spike_factor:g}x the median of "
+                  f"the {SPIKE_WINDOW} rows before), worst {worst:.2f}x; last {SPIKE_WINDOW} rows' median {end:.4g}")
     for ax, key in zip(axes[0], keys):
         ax.set_title(key)
         ax.set_xlabel("iteration")

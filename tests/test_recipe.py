@@ -446,3 +446,96 @@ def test_logvar_max_bounds_the_sampling_noise_and_is_stored(tmp_path):
     assert meshseq.load(tmp_path / "p").net.config.logvar_max == -1.0
     with pytest.raises(SystemExit):  # argparse's usage error, naming the option
         main(["train", str(data), "--out", str(tmp_path / "x"), "--logvar-max", "big", *common])
+
+
+def test_clip_threshold_is_a_multiple_of_the_median_of_recent_norms():
+    from meshseq.train import GRAD_CLIP_WARMUP, clip_threshold, scale_gradients
+
+    history = [1.0, 2.0, 3.0, 4.0, 1000.0] * 2  # one exploding roll-out in five
+    assert len(history) == GRAD_CLIP_WARMUP
+    assert clip_threshold(history, 3.0) == pytest.approx(3.0 * 3.0)  # the median: outliers do not move it
+    assert clip_threshold(history[:-1], 3.0) is None  # too few norms known yet
+    assert clip_threshold(history, None) is None  # the paper: no clipping
+    p = torch.nn.Parameter(torch.ones(3))
+    q = torch.nn.Parameter(torch.ones(2))  # no gradient: left alone
+    p.grad = torch.tensor([3.0, 0.0, 4.0])
+    scale_gradients([p, q], 0.5)
+    assert torch.equal(p.grad, torch.tensor([1.5, 0.0, 2.0])) and q.grad is None
+    with pytest.raises(MeshseqError, match="--grad-clip"):
+        TrainConfig(grad_clip=0.0)
+    with pytest.raises(MeshseqError, match="--grad-clip"):
+        TrainConfig(grad_clip=float("inf"))
+    assert RECIPES["paper"]["grad_clip"] is None
+    assert TrainConfig.from_dict({}).grad_clip is None  # runs stored before the option
+
+
+def test_training_clips_gradients_and_resumes_the_clip_history_bit_for_bit(tmp_path, monkeypatch):
+    import csv
+
+    import meshseq.train as T
+
+    seq, feats = limb()
+    data = training_data(seq, feats)
+    # a factor below 1 clips every step once GRAD_CLIP_WARMUP norms are known
+    cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=12, log_every=1, grad_clip=0.5)
+    after = []
+    real_scale = T.scale_gradients
+
+    def spy(parameters, scale):
+        real_scale(parameters, scale)
+        after.append(float(T.grad_norm(parameters)))
+
+    monkeypatch.setattr(T, "scale_gradients", spy)
+    one = train(data, tmp_path / "a", TrainConfig(iterations=16, **cfg), SMALL, progress=False, log=None)
+    with open(tmp_path / "a" / "metrics.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    norms = [float(r["grad_norm"]) for r in rows]
+    assert [int(r["clipped"]) for r in rows] == [0] * T.GRAD_CLIP_WARMUP + [1] * (16 - T.GRAD_CLIP_WARMUP)
+    # each clipped gradient went to Adam at 0.5 x the median of the norms before it
+    expected = [0.5 * float(np.median(norms[:i])) for i in range(T.GRAD_CLIP_WARMUP, 16)]
+    assert after == pytest.approx(expected, rel=1e-4)
+    # the history of norms travels in the checkpoint: a resumed run clips as the whole one did
+    train(data, tmp_path / "b", TrainConfig(iterations=12, **cfg), SMALL, progress=False, log=None)
+    two = train(data, tmp_path / "b", TrainConfig(iterations=16, **cfg), SMALL, resume=True, progress=False,
+                log=None)
+    for k, v in one["model"].state_dict().items():
+        assert torch.equal(v, two["model"].state_dict()[k]), k
+    # unclipped (the paper's recipe), the same seed ends elsewhere
+    free = train(data, tmp_path / "c", TrainConfig(iterations=16, **(cfg | {"grad_clip": None})), SMALL,
+                 progress=False, log=None)
+    assert not torch.equal(free["model"].fc.weight, one["model"].fc.weight)
+
+
+def test_cli_grad_clip_option(tmp_path):
+    from meshseq.cli import main
+    from meshseq.io import save_sequence
+
+    seq, _ = limb()
+    data = tmp_path / "limb.npz"
+    save_sequence(seq, data)
+    clip = {}
+    for name, extra in (("d", ["--grad-clip", "3"]), ("n", ["--grad-clip", "none"]), ("p", ["--recipe", "paper"]),
+                        ("q", ["--recipe", "paper", "--grad-clip", "2"])):
+        assert main(["train", str(data), "--out", str(tmp_path / name), *extra, *TINY_CLI]) == 0
+        clip[name] = stored_configs(tmp_path / name)[0]["grad_clip"]
+    assert clip == {"d": 3.0, "n": None, "p": None, "q": 2.0}
+    with pytest.raises(SystemExit):
+        main(["train", str(data), "--out", str(tmp_path / "x"), "--grad-clip", "big", *TINY_CLI])
+
+
+def test_adam_beta2_is_checked_stored_and_used(tmp_path):
+    import json
+
+    from meshseq.cli import main
+    from meshseq.io import save_sequence
+
+    with pytest.raises(MeshseqError, match="--adam-beta2"):
+        TrainConfig(adam_beta2=1.0)
+    assert TrainConfig.from_dict({}).adam_beta2 == 0.999  # runs stored before the option
+    seq, _ = limb()
+    data = tmp_path / "limb.npz"
+    save_sequence(seq, data)
+    assert main(["train", str(data), "--out", str(tmp_path / "r"), "--adam-beta2", "0.99", *TINY_CLI]) == 0
+    assert stored_configs(tmp_path / "r")[0]["adam_beta2"] == 0.99
+    state = json.loads(next((tmp_path / "r" / "checkpoints").iterdir()).joinpath("state.json").read_text())
+    assert {tuple(g["betas"]) for g in state["optimizer"]["param_groups"]} == {(0.9, 0.99)}

@@ -214,6 +214,7 @@ _STATE = {
     "numpy_rng": dict,
     "python_random": Opt(list),
     "world_size": Opt(int),
+    "grad_norms": Opt([float]),
 }
 
 

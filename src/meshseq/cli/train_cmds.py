@@ -54,6 +54,8 @@ def register(sub) -> None:
                    help="default: meshseq's measured recipe (see docs/results.md); paper: the paper's "
                    "literal recipe (its L_2 collapses the latent and roll-outs freeze)")
     l.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
+    l.add_argument("--adam-beta2", type=float, default=0.999,
+                   help="Adam's second-moment decay (0.999: TensorFlow's and torch's default)")
     l.add_argument("--w-rec", type=float, default=None, help="weight of L_rec")
     l.add_argument("--w-bd", type=float, default=None, help="weight of L_bd (ignored by --variant uni)")
     l.add_argument("--w-kl", type=float, default=None, help="weight of L_KL")
@@ -80,6 +82,9 @@ def register(sub) -> None:
                    help="clamp the encoder's log-variance to at most X, so the sampling noise never "
                    "exceeds exp(X / 2) (the default recipe: 0, the prior's spread); none: unbounded "
                    "(the paper)")
+    l.add_argument("--grad-clip", type=_number_or_none, default=None, metavar="X|none",
+                   help="clip the gradient's norm at X times the median norm of the last 100 iterations, "
+                   "so one exploding roll-out cannot throw the weights far; none: no clipping (both recipes)")
     l.add_argument("--no-kl", action="store_true", help="drop L_KL (paper Table 1 ablation)")
     l.add_argument("--no-l2", action="store_true", help="drop L_2 (paper Fig. 3 ablation)")
     d = p.add_argument_group("data")
@@ -99,7 +104,7 @@ def register(sub) -> None:
 
 
 def _number_or_none(text: str):
-    """``--logvar-max`` values: a number, or ``none`` (unbounded; kept apart from "not given")."""
+    """``--logvar-max`` / ``--grad-clip`` values: a number, or ``none`` (off; kept apart from "not given")."""
     if text.lower() == "none":
         return _UNBOUNDED
     try:
@@ -108,7 +113,7 @@ def _number_or_none(text: str):
         raise argparse.ArgumentTypeError(f"expected a number or none, got {text!r}") from None
 
 
-#: ``--logvar-max none``: distinct from the option's default (None = take it from --recipe) and
+#: ``--logvar-max none``, ``--grad-clip none``: distinct from the option's default (None = take it from --recipe) and
 #: from every other option's "none" string (an object of its own, so no interned "none" is it)
 _UNBOUNDED = object()
 
@@ -138,7 +143,7 @@ def _train(args) -> int:
         recipe["w_l2"] = 0.0
     config = TrainConfig(
         iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride, seed=args.seed,
-        lr=args.lr, holdout=args.holdout, holdout_at=args.holdout_at,
+        lr=args.lr, adam_beta2=args.adam_beta2, holdout=args.holdout, holdout_at=args.holdout_at,
         scaling=args.scaling, consistency=args.consistency, eval_every=args.eval_every,
         checkpoint_every=args.checkpoint_every, log_every=args.log_every, keep=args.keep,
         precision=args.precision, **recipe,
