@@ -223,6 +223,12 @@ class TrainConfig:
 #: Measured and left out: ``step_scale = "data"`` (decoder output in units of the RMS frame
 #: change) learns slower (held-out L_rec 6.5 against 4.3 at 600 iterations); a deterministic
 #: latent (no noise, no KL) changed little without the normalisation (864 against 834).
+#: Against horse-gallop's loss spikes (L_rec 150 -> 4,985 at iteration 750 with the default
+#: recipe; docs/recipe_study.md "Loss spikes on horse-gallop"), each one run of seed 0:
+#: ``grad_clip = 3`` (clipped 15% of the iterations, L_rec still rose 500 -> 917 while 7 of 10
+#: were clipped: under Adam a clipped gradient leaves the step about as large), ``lr = 5e-4``
+#: (slower, L_rec 530 against 328 at 400, and a spike to 1,408), ``adam_beta2 = 0.99`` (mildest:
+#: worst 984; spikes remain). None removes them; all three stay options, off in both recipes.
 RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "given", "step_scale", "input_norm", "fc_lr",
                   "kl_scale", "logvar_max", "grad_clip")
 RECIPES = {
