@@ -77,12 +77,12 @@ FC_REFERENCE_FAN_IN = 9000
 KL_SCALES = ("vertices", "none")
 #: The mesh size at which the recipe study chose w_kl = 0.1 (the 1,000-vertex body set).
 KL_REFERENCE_VERTICES = 1000
-#: Fields added to TrainConfig after runs were stored without them: the value that reproduces
-#: those runs (TrainConfig.from_dict fills it in when a stored config lacks the field).
 #: ``grad_clip``: the gradient's norm is clipped at ``grad_clip`` times the median norm of the last
 #: ``GRAD_CLIP_HISTORY`` iterations (unclipped norms), once ``GRAD_CLIP_WARMUP`` are known.
 GRAD_CLIP_HISTORY = 100
 GRAD_CLIP_WARMUP = 10
+#: Fields added to TrainConfig after runs were stored without them: the value that reproduces
+#: those runs (TrainConfig.from_dict fills it in when a stored config lacks the field).
 LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "logvar_max": None,
                          "grad_clip": None, "adam_beta2": 0.999}
 
