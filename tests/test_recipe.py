@@ -539,3 +539,107 @@ def test_adam_beta2_is_checked_stored_and_used(tmp_path):
     assert stored_configs(tmp_path / "r")[0]["adam_beta2"] == 0.99
     state = json.loads(next((tmp_path / "r" / "checkpoints").iterdir()).joinpath("state.json").read_text())
     assert {tuple(g["betas"]) for g in state["optimizer"]["param_groups"]} == {(0.9, 0.99)}
+
+
+def test_average_decay_warms_up_then_holds():
+    import meshseq.train as T
+
+    assert T.average_decay(0.99, 1) == pytest.approx(2 / (T.EMA_WARMUP + 1))
+    assert T.average_decay(0.99, 10) == pytest.approx(11 / (T.EMA_WARMUP + 10))
+    assert T.average_decay(0.99, 5000) == 0.99
+    decays = [T.average_decay(0.999, t) for t in range(1, 10000)]  # reaches 0.999 at t = 8991
+    assert all(a <= b for a, b in zip(decays, decays[1:])) and decays[-1] == 0.999
+    a, p = [torch.zeros(3)], [torch.ones(3)]
+    T.update_average(a, p, 0.75)
+    assert torch.allclose(a[0], torch.full((3,), 0.25))
+
+
+def test_ema_checkpoints_deliver_the_average_and_resume_bit_for_bit(tmp_path, monkeypatch):
+    """With ema_decay the checkpoint's model is the running average of the weights (recomputed
+    here from every iteration's weights), the weights training continues from travel in the
+    training state, a resumed run ends exactly where the whole run does, and the average does not
+    change training."""
+    import meshseq.train as T
+    from meshseq import checkpoint as ckpt
+
+    seq, feats = limb()
+    data = training_data(seq, feats)
+    cfg = dict(window=6, batch=2, eval_every=4, checkpoint_every=6, log_every=1, ema_decay=0.5)
+    initial, seen = [], []  # the average before the first update; the weights after every update
+    real = T.update_average
+
+    def spy(average, parameters, decay):
+        if not initial:
+            initial.extend(a.clone() for a in average)
+        seen.append(([p.detach().clone() for p in parameters], decay))
+        real(average, parameters, decay)
+
+    monkeypatch.setattr(T, "update_average", spy)
+    one = train(data, tmp_path / "a", TrainConfig(iterations=10, **cfg), SMALL, progress=False, log=None)
+    monkeypatch.setattr(T, "update_average", real)
+    assert [d for _, d in seen] == [T.average_decay(0.5, t) for t in range(1, 11)]
+    expected = initial
+    for weights, decay in seen:
+        expected = [e.lerp(w, 1.0 - decay) for e, w in zip(expected, weights)]
+    names = [n for n, _ in one["model"].named_parameters()]
+    final = ckpt.load_latest(tmp_path / "a", with_state=True)
+    delivered = dict(final.net.named_parameters())
+    raw = {k[len("train."):]: v for k, v in final.state_tensors.items() if k.startswith("train.")}
+    assert set(raw) == set(names)
+    for n, e, w in zip(names, expected, seen[-1][0]):
+        assert torch.equal(delivered[n].detach(), e), n  # the model is the average...
+        assert torch.equal(raw[n], w), n  # ... and training continues from the last weights
+        assert not torch.equal(e, w), n
+    for k, v in final.net.state_dict().items():  # train() returns what the checkpoint delivers
+        assert torch.equal(v, one["model"].state_dict()[k]), k
+    # resume from iteration 6: the same average and the same training weights as the whole run
+    train(data, tmp_path / "b", TrainConfig(iterations=6, **cfg), SMALL, progress=False, log=None)
+    two = train(data, tmp_path / "b", TrainConfig(iterations=10, **cfg), SMALL, resume=True, progress=False, log=None)
+    again = ckpt.load_latest(tmp_path / "b", with_state=True)
+    for k, v in one["model"].state_dict().items():
+        assert torch.equal(v, two["model"].state_dict()[k]), k
+    for n in names:
+        assert torch.equal(raw[n], again.state_tensors[f"train.{n}"]), n
+    # the average does not change training: a run without it ends at the training weights
+    plain = train(data, tmp_path / "c", TrainConfig(iterations=10, **(cfg | {"ema_decay": None})), SMALL,
+                  progress=False, log=None)
+    for n, p in plain["model"].named_parameters():
+        assert torch.equal(p.detach(), raw[n]), n
+    assert not any(k.startswith("train.") for k in ckpt.load_latest(tmp_path / "c", with_state=True).state_tensors)
+
+
+def test_ema_option_is_checked_stored_and_its_training_weights_required(tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    from meshseq import checkpoint as ckpt
+    from meshseq.cli import main
+    from meshseq.io import save_sequence
+
+    for bad in (0.0, 1.0, float("nan")):
+        with pytest.raises(MeshseqError, match="--ema-decay"):
+            TrainConfig(ema_decay=bad)
+    assert TrainConfig.from_dict({}).ema_decay is None  # runs stored before the option
+    assert RECIPES["paper"]["ema_decay"] is None
+    seq, _ = limb()
+    data = tmp_path / "limb.npz"
+    save_sequence(seq, data)
+    got = {}
+    for name, extra in (("e", ["--ema-decay", "0.9"]), ("n", ["--ema-decay", "none"]),
+                        ("p", ["--recipe", "paper"])):
+        assert main(["train", str(data), "--out", str(tmp_path / name), *extra, *TINY_CLI]) == 0
+        got[name] = stored_configs(tmp_path / name)[0]["ema_decay"]
+    assert got == {"e": 0.9, "n": None, "p": None}
+    # a training state without its training weights is refused on load, naming the tensor
+    folder = ckpt.latest_checkpoint(tmp_path / "e")
+    tensors = load_file(folder / "state.safetensors")
+    dropped = sorted(k for k in tensors if k.startswith("train."))[0]
+    del tensors[dropped]
+    save_file(tensors, folder / "state.safetensors")
+    import hashlib
+    import json
+
+    smeta = json.loads((folder / "state.json").read_text())
+    smeta["sha256"] = hashlib.sha256((folder / "state.safetensors").read_bytes()).hexdigest()
+    (folder / "state.json").write_text(json.dumps(smeta))
+    with pytest.raises(MeshseqError, match=dropped.replace(".", r"\.")):
+        ckpt.load_folder(folder, with_state=True)

@@ -2,7 +2,8 @@
 
 A run folder ``RUN`` holds ``RUN/checkpoints/ITERATION/`` (zero-padded) folders, each with
 
-* ``model.safetensors``: ``model.<name>`` weights of the generator, ``reference.vertices``
+* ``model.safetensors``: ``model.<name>`` weights of the generator (with ``--ema-decay``: their
+  moving average, the delivered model), ``reference.vertices``
   ``(V, 3)`` float64 and ``reference.faces`` ``(F, 3)`` int64 (the mesh the features refer to, so
   features can be turned back into vertices without the training data);
 * ``model.json``: format, iteration, model config, training config, feature scaling, mesh
@@ -10,6 +11,7 @@ A run folder ``RUN`` holds ``RUN/checkpoints/ITERATION/`` (zero-padded) folders,
 * ``state.safetensors``: Adam moments ``optim.<param name>.<key>``, the torch CPU generator state
   ``rng.torch`` (uint8) and, on CUDA, ``rng.cuda``; under DistributedDataParallel every other
   process's as ``rng.torch.rank<R>`` / ``rng.cuda.rank<R>`` (each rank draws its own noise);
+  with ``--ema-decay``, ``train.<param name>``: the weights training continues from;
 * ``state.json``: Adam step counts and hyper-parameters, the numpy bit-generator state (common to
   all ranks), Python's ``random`` state, the number of processes and the SHA-256 of
   ``state.safetensors``.

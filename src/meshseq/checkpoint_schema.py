@@ -315,7 +315,9 @@ def check_model_tensors(tensors: dict, expected: dict, file: Path) -> None:
 def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> None:
     """CheckpointError unless state.safetensors holds Adam moments ``optim.<param>.<key>`` shaped
     like the parameters ``params`` (name -> tensor) for exactly the parameters with step counts in
-    ``meta`` (state.json), finite, and valid torch generator states ``rng.torch[.rankR]``."""
+    ``meta`` (state.json), finite, valid torch generator states ``rng.torch[.rankR]`` and, behind a
+    weight average (``ema_decay``), the weights training continues from, ``train.<param>``, for
+    every parameter."""
     scalars = meta["optimizer"]["scalars"]
     listed = [n for g in meta["optimizer"]["param_groups"] for n in g["params"]]
     if sorted(listed) != sorted(params) or len(set(listed)) != len(listed):
@@ -332,6 +334,14 @@ def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> 
                 raise CheckpointError(file, key, f"{t.dtype} {tuple(t.shape)}, expected {p.dtype} "
                                       f"{tuple(p.shape)} (its parameter)")
             moments.setdefault(name, set()).add(sub)
+        elif key.startswith("train."):  # the weights training continues from (behind a weight average)
+            name = key[len("train."):]
+            if name not in params:
+                raise CheckpointError(file, key, "weights of an unknown parameter")
+            p = params[name]
+            if t.dtype != p.dtype or t.shape != p.shape:
+                raise CheckpointError(file, key, f"{t.dtype} {tuple(t.shape)}, expected {p.dtype} "
+                                      f"{tuple(p.shape)} (its parameter)")
         elif key == "rng.torch" or key.startswith("rng.torch.rank"):
             try:
                 torch.Generator().set_state(t)
@@ -347,4 +357,8 @@ def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> 
     if set(moments) != set(scalars):
         odd = sorted(set(moments) ^ set(scalars))[0]
         raise CheckpointError(file, f"optim.{odd}", "moments and step count do not come together (state.json)")
-    _check_finite({k: v for k, v in tensors.items() if k.startswith("optim.")}, file)
+    weights = {k for k in tensors if k.startswith("train.")}
+    if weights and len(weights) != len(params):
+        missing = sorted(set(params) - {k[len("train."):] for k in weights})[0]
+        raise CheckpointError(file, f"train.{missing}", "missing (the training weights come for every parameter or none)")
+    _check_finite({k: v for k, v in tensors.items() if k.startswith(("optim.", "train."))}, file)

@@ -40,6 +40,7 @@ term, and the last good checkpoint stays the newest.
 from __future__ import annotations
 
 import collections
+import contextlib
 import csv
 import io as _io
 import math
@@ -81,10 +82,13 @@ KL_REFERENCE_VERTICES = 1000
 #: ``GRAD_CLIP_HISTORY`` iterations (unclipped norms), once ``GRAD_CLIP_WARMUP`` are known.
 GRAD_CLIP_HISTORY = 100
 GRAD_CLIP_WARMUP = 10
+#: ``ema_decay``: the averaging weight of iteration t is ``min(ema_decay, (1 + t) / (EMA_WARMUP + t))``,
+#: so the first iterations are not averaged with the random initial weights (see ``average_decay``).
+EMA_WARMUP = 10
 #: Fields added to TrainConfig after runs were stored without them: the value that reproduces
 #: those runs (TrainConfig.from_dict fills it in when a stored config lacks the field).
 LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "logvar_max": None,
-                         "grad_clip": None, "adam_beta2": 0.999}
+                         "grad_clip": None, "adam_beta2": 0.999, "ema_decay": None}
 
 @dataclass
 class TrainConfig:
@@ -113,6 +117,7 @@ class TrainConfig:
     kl_scale: str = "vertices"  # the default recipe (RECIPES); the paper: "none"
     logvar_max: float | None = 0.0  # the default recipe (RECIPES); the paper: None (unbounded)
     grad_clip: float | None = None  # off in both recipes (measured on horse-gallop: see RECIPES)
+    ema_decay: float | None = None  # checkpoints deliver this moving average of the weights (None: the last weights)
     sample: bool = True
     eval_every: int = 100
     checkpoint_every: int = 500
@@ -147,6 +152,8 @@ class TrainConfig:
             raise MeshseqError(f"--logvar-max {self.logvar_max!r}: expected a number")
         if self.grad_clip is not None and not (is_finite_number(self.grad_clip) and self.grad_clip > 0):
             raise MeshseqError(f"--grad-clip {self.grad_clip!r}: expected a positive number or none")
+        if self.ema_decay is not None and not (is_finite_number(self.ema_decay) and 0 < self.ema_decay < 1):
+            raise MeshseqError(f"--ema-decay {self.ema_decay!r}: expected a number in (0, 1) or none")
         if self.kl_scale not in KL_SCALES:
             raise MeshseqError(f"--kl-scale {self.kl_scale!r}: expected one of {', '.join(KL_SCALES)}")
         if self.precision not in PRECISIONS:
@@ -233,10 +240,11 @@ class TrainConfig:
 #: horse trained smoothly after one early spike (median gradient norm 14 x smaller): the motion
 #: term, which rewards roll-outs that move, is what drives the spikes.
 RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "given", "step_scale", "input_norm", "fc_lr",
-                  "kl_scale", "logvar_max", "grad_clip")
+                  "kl_scale", "logvar_max", "grad_clip", "ema_decay")
 RECIPES = {
     "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "w_motion": 0.0, "given": 1, "step_scale": "none",
-              "input_norm": False, "fc_lr": "none", "kl_scale": "none", "logvar_max": None, "grad_clip": None},
+              "input_norm": False, "fc_lr": "none", "kl_scale": "none", "logvar_max": None, "grad_clip": None,
+              "ema_decay": None},
     "default": {name: TrainConfig.__dataclass_fields__[name].default for name in RECIPE_OPTIONS},
 }
 
@@ -600,6 +608,39 @@ def scale_gradients(parameters, scale: float) -> None:
         torch._foreach_mul_(grads, scale)
 
 
+def average_decay(ema_decay: float, iteration: int) -> float:
+    """The weight of the old average at ``iteration`` (1-based): ``min(ema_decay, (1 + t) /
+    (EMA_WARMUP + t))``, TensorFlow's ``num_updates`` rule: early averages follow the weights
+    closely instead of remembering the random initialisation for ~1 / (1 - ema_decay) iterations."""
+    return min(float(ema_decay), (1.0 + iteration) / (EMA_WARMUP + iteration))
+
+
+def update_average(average: list[torch.Tensor], parameters: list[torch.Tensor], decay: float) -> None:
+    """``average <- decay * average + (1 - decay) * parameters`` in place (lists of like tensors)."""
+    with torch.no_grad():
+        for a, p in zip(average, parameters):
+            a.lerp_(p.detach(), 1.0 - decay)
+
+
+@contextlib.contextmanager
+def weights_swapped(parameters: list[torch.Tensor], weights: list[torch.Tensor] | None):
+    """Run the body with ``weights`` copied into ``parameters``, then restore them bit for bit
+    (``weights`` None: nothing changes)."""
+    if weights is None:
+        yield
+        return
+    with torch.no_grad():
+        kept = [p.detach().clone() for p in parameters]
+        for p, w in zip(parameters, weights):
+            p.copy_(w)
+    try:
+        yield
+    finally:
+        with torch.no_grad():
+            for p, k in zip(parameters, kept):
+                p.copy_(k)
+
+
 def divergence(it: int, names: list[str], values: torch.Tensor, lr: float, last_checkpoint: str | None) -> str:
     """The one-line error for a non-finite loss term or gradient norm; ``values`` ``(len(names),)``."""
     bad = [(n, v) for n, v in zip(names, values.tolist()) if not math.isfinite(v)]
@@ -642,7 +683,8 @@ def train(
             term; checkpoints are written only with finite weights.
     Returns:
         ``{"iteration", "checkpoint", "loss", "heldout_rec", "model"}`` after the last iteration
-        (``model``: the trained ``BDLSTM``).
+        (``model``: the trained ``BDLSTM``, with the weight average when ``ema_decay`` is set:
+        what the checkpoints deliver).
     """
     from meshseq.acap import Scaling
 
@@ -737,6 +779,21 @@ def train(
         if stored_world < dist_info.world:
             log(f"the checkpoint was written by {stored_world} process(es), not {dist_info.world}: the sampling "
                 f"noise of processes {stored_world}.. is reseeded (the run is not repeated bit for bit)")
+    params = list(model.parameters())
+    param_names = [n for n, _ in model.named_parameters()]
+    # with ema_decay, checkpoints deliver the average (model tensors) and carry the weights
+    # training continues from in the training state (train.<name>)
+    average = None
+    if config.ema_decay is not None:
+        average = [p.detach().clone() for p in params]  # a fresh run: the initial weights; a resume: the stored average
+        if found is not None:
+            raw = {k[len("train."):]: v for k, v in found.state_tensors.items() if k.startswith("train.")}
+            if set(raw) != set(param_names):
+                raise MeshseqError(f"--resume: {found.folder}: the training state lacks the weights (train.*) "
+                                   "behind its weight average (ema_decay)")
+            with torch.no_grad():
+                for n, p in zip(param_names, params):
+                    p.copy_(raw[n])
     if dist_info.rank > 0 and not own_rng:
         # different sampling noise per rank (the windows stay common)
         torch.manual_seed(config.seed + 7919 * dist_info.rank + start)
@@ -757,6 +814,8 @@ def train(
 
     def save(iteration: int, rng_t: dict) -> Path:
         tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
+        if average is not None:
+            tensors.update({f"model.{n}": a for n, a in zip(param_names, average)})
         tensors["reference.vertices"] = torch.from_numpy(np.asarray(data.reference, dtype=np.float64))
         tensors["reference.faces"] = torch.from_numpy(np.asarray(faces, dtype=np.int64))
         meta = {
@@ -773,7 +832,9 @@ def train(
         _, rng_meta = ckpt.rng_state()
         state_meta = {"optimizer": opt_meta, "numpy_rng": np_rng.bit_generator.state, "world_size": dist_info.world,
                       "grad_norms": list(grad_history), **rng_meta}
-        return ckpt.save_checkpoint(run_dir, iteration, tensors, meta, {**opt_t, **rng_t}, state_meta, config.keep)
+        raw_t = {f"train.{n}": p for n, p in zip(param_names, params)} if average is not None else {}
+        return ckpt.save_checkpoint(run_dir, iteration, tensors, meta, {**opt_t, **rng_t, **raw_t}, state_meta,
+                                    config.keep)
 
     def gather_rng() -> dict:
         """Every process's torch (and CUDA) generator state, named by rank (every rank calls this)."""
@@ -792,7 +853,7 @@ def train(
         if len(eval_rows) == 0:
             return {}
         model.eval()
-        with torch.no_grad():
+        with torch.no_grad(), weights_swapped(params, average):  # what a checkpoint delivers
             w = frames[torch.from_numpy(eval_rows).to(dev)]
             terms = window_losses(model(w, sample=False), w)
         model.train()
@@ -810,7 +871,6 @@ def train(
     t0 = time.perf_counter()
     collapse_warned = False
     clipped = 0  # iterations whose gradient was clipped since the last metrics row
-    params = list(model.parameters())
     checked = [k for k in ("rec", "bd", "kl", "l2", "motion") if getattr(config, f"w_{k}") != 0]
     checked_names = [f"the loss term {k}" for k in checked] + ["the total loss", "the gradient norm"]
     try:
@@ -841,6 +901,8 @@ def train(
                 scale_gradients(params, limit / norm)
                 clipped += 1
             optimizer.step()
+            if average is not None:
+                update_average(average, params, average_decay(config.ema_decay, it))
 
             row = None
             if config.log_every and it % config.log_every == 0 or it == config.iterations:
@@ -881,6 +943,10 @@ def train(
             metrics.close()
         if dist_info.started_here:
             torch.distributed.destroy_process_group()
+    if average is not None:  # return what the checkpoints deliver
+        with torch.no_grad():
+            for p, a in zip(params, average):
+                p.copy_(a)
     last["model"] = model
     return last
 

@@ -85,6 +85,10 @@ def register(sub) -> None:
     l.add_argument("--grad-clip", type=_number_or_none, default=None, metavar="X|none",
                    help="clip the gradient's norm at X times the median norm of the last 100 iterations, "
                    "so one exploding roll-out cannot throw the weights far; none: no clipping (both recipes)")
+    l.add_argument("--ema-decay", type=_number_or_none, default=None, metavar="X|none",
+                   help="checkpoints deliver an exponential moving average of the weights with decay X "
+                   "(about the last 1 / (1 - X) iterations), so a loss spike near the end does not reach "
+                   "the delivered model; none: the last weights (the paper)")
     l.add_argument("--no-kl", action="store_true", help="drop L_KL (paper Table 1 ablation)")
     l.add_argument("--no-l2", action="store_true", help="drop L_2 (paper Fig. 3 ablation)")
     d = p.add_argument_group("data")
@@ -104,7 +108,7 @@ def register(sub) -> None:
 
 
 def _number_or_none(text: str):
-    """``--logvar-max`` / ``--grad-clip`` values: a number, or ``none`` (off; kept apart from "not given")."""
+    """``--logvar-max`` / ``--grad-clip`` / ``--ema-decay`` values: a number, or ``none`` (off; kept apart from "not given")."""
     if text.lower() == "none":
         return _UNBOUNDED
     try:
