@@ -75,6 +75,35 @@ def test_resume_is_bit_for_bit(tmp_path, limb):
     assert rows(tmp_path / "a") == rows(tmp_path / "b")
 
 
+def test_writing_checkpoints_does_not_change_training(tmp_path, limb):
+    """A run that writes (and, to keep the newest, checks) several checkpoints trains exactly as
+    one that writes only the last, and a resume from a later checkpoint ends at the same weights.
+    (Checking an older checkpoint builds a model; that must not draw from the global generator the
+    sampling noise comes from.)"""
+    _, data = limb
+    cfg = dict(window=6, batch=3, eval_every=0, log_every=1)
+    often = train(data, tmp_path / "a", TrainConfig(iterations=12, checkpoint_every=3, keep=2, **cfg), SMALL,
+                  device="cpu", progress=False, log=None)
+    once = train(data, tmp_path / "b", TrainConfig(iterations=12, checkpoint_every=0, **cfg), SMALL,
+                 device="cpu", progress=False, log=None)
+    train(data, tmp_path / "c", TrainConfig(iterations=9, checkpoint_every=3, keep=2, **cfg), SMALL,
+          device="cpu", progress=False, log=None)
+    resumed = train(data, tmp_path / "c", TrainConfig(iterations=12, checkpoint_every=3, keep=2, **cfg), SMALL,
+                    device="cpu", resume=True, progress=False, log=None)
+    for other in (once, resumed):
+        for k, v in often["model"].state_dict().items():
+            assert torch.equal(v, other["model"].state_dict()[k]), k
+
+
+def test_loading_a_checkpoint_leaves_the_global_generator_alone(tmp_path, limb):
+    _, data = limb
+    train(data, tmp_path / "run", TrainConfig(iterations=1, window=6, batch=2, eval_every=0), SMALL,
+          device="cpu", progress=False, log=None)
+    before = torch.get_rng_state()
+    ckpt.load_latest(tmp_path / "run", with_state=True)
+    assert torch.equal(before, torch.get_rng_state())
+
+
 def test_checkpoint_contents_and_no_pickles(tmp_path, limb):
     seq, data = limb
     train(data, tmp_path / "run", TrainConfig(iterations=3, window=6, batch=2, checkpoint_every=1, keep=2),

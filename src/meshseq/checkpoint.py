@@ -217,8 +217,11 @@ def load_folder(folder: str | os.PathLike, with_state: bool = False) -> Loaded:
     schema.check_reference(tensors, meta, folder / MODEL_TENSORS)
     reference = tensors["reference.vertices"].numpy()
     faces = tensors["reference.faces"].numpy()
-    net = BDLSTM(ModelConfig.from_dict(meta["model"], source=str(folder / MODEL_META)),
-                 Topology.from_faces(faces, len(reference)))
+    # the random initial weights are overwritten below: draw them from a forked generator, so
+    # loading (e.g. checking an older checkpoint while training) leaves the caller's noise alone
+    with torch.random.fork_rng(devices=[]):
+        net = BDLSTM(ModelConfig.from_dict(meta["model"], source=str(folder / MODEL_META)),
+                     Topology.from_faces(faces, len(reference)))
     schema.check_model_tensors(tensors, net.state_dict(), folder / MODEL_TENSORS)
     net.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
     loaded = Loaded(folder, meta, net, reference, faces)
