@@ -643,3 +643,47 @@ def test_ema_option_is_checked_stored_and_its_training_weights_required(tmp_path
     (folder / "state.json").write_text(json.dumps(smeta))
     with pytest.raises(MeshseqError, match=dropped.replace(".", r"\.")):
         ckpt.load_folder(folder, with_state=True)
+
+
+def test_mu_max_squashes_the_latent_mean_softly_and_is_stored(tmp_path):
+    import meshseq
+    from meshseq.cli import main
+    from meshseq.io import save_sequence
+
+    seq, feats = limb()
+    torch.manual_seed(0)
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    bounded = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, mu_max=2.0, **SMALL), topo)
+    free = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, **SMALL), topo)
+    free.load_state_dict(bounded.state_dict())
+    with torch.no_grad():
+        for net in (free, bounded):
+            net.fc_mu.bias[:8] = 5.0  # a head throwing half the latent far outside the prior
+            net.fc_mu.bias[8:] = 0.0
+    x = torch.as_tensor(feats[:4] / np.abs(feats).max() * 0.9, dtype=torch.float32)
+    with torch.no_grad():
+        mu_free, lv_free = free.encode(x)
+        mu_bounded, lv_bounded = bounded.encode(x)
+    assert float(mu_free.max()) > 4.0 and float(mu_bounded.abs().max()) < 2.0
+    assert torch.allclose(mu_bounded, 2.0 * torch.tanh(mu_free / 2.0))
+    assert torch.equal(lv_bounded, lv_free)  # the noise is not touched
+    small = mu_free.abs() < 0.2  # near 0 the squashing is (almost) the identity
+    assert torch.allclose(mu_bounded[small], mu_free[small], atol=2e-3)
+    # roll-outs (the fused training path) see the squashed mean too
+    with torch.no_grad():
+        out = bounded(x[None], sample=False)
+    assert float(out["mu"].abs().max()) < 2.0
+    with pytest.raises(MeshseqError, match="mu_max"):
+        ModelConfig(n_vertices=10, mu_max=0.0)
+    with pytest.raises(MeshseqError, match="--mu-max"):
+        TrainConfig(mu_max=-1.0)
+    assert RECIPES["paper"]["mu_max"] is None and TrainConfig.from_dict({}).mu_max is None
+    assert ModelConfig.from_dict({"n_vertices": 10}).mu_max is None  # models stored before the option
+    data = tmp_path / "limb.npz"
+    save_sequence(seq, data)
+    assert main(["train", str(data), "--out", str(tmp_path / "m"), "--mu-max", "3", *TINY_CLI]) == 0
+    train_opts, model_opts = stored_configs(tmp_path / "m")
+    assert train_opts["mu_max"] == 3.0 and model_opts["mu_max"] == 3.0
+    assert meshseq.load(tmp_path / "m").net.config.mu_max == 3.0
+    assert main(["train", str(data), "--out", str(tmp_path / "n"), "--mu-max", "none", *TINY_CLI]) == 0
+    assert stored_configs(tmp_path / "n")[1]["mu_max"] is None

@@ -83,6 +83,10 @@ class ModelConfig:
     ``logvar_max`` (None = the paper: unbounded): the VAE head's log-variance is clamped to at
     most this, so the sampling noise ``exp(logvar / 2)`` never exceeds ``exp(logvar_max / 2)``
     (0: the prior's unit spread; see ``meshseq.train.RECIPES`` for why).
+
+    ``mu_max`` (None = the paper: unbounded): the VAE head's mean is squashed softly into
+    ``(-mu_max, mu_max)``, ``mu = mu_max * tanh(m / mu_max)`` (``m``: the head's output), so a
+    coherent Adam step on the large encoder FC cannot throw the latent far outside the prior's range.
     """
 
     n_vertices: int
@@ -96,6 +100,7 @@ class ModelConfig:
     step_scale: list[float] | None = None
     input_norm: bool = False
     logvar_max: float | None = None
+    mu_max: float | None = None
 
     def __post_init__(self):
         ModelConfig.check_options(self.__dict__)
@@ -164,6 +169,9 @@ def _model_config_problem(values: dict) -> tuple[str, object, str] | None:
         return "input_norm", values["input_norm"], "expected true or false"
     if values["logvar_max"] is not None and not is_finite_number(values["logvar_max"]):
         return "logvar_max", values["logvar_max"], "expected a number or null"
+    mu_max = values["mu_max"]
+    if mu_max is not None and not (is_finite_number(mu_max) and mu_max > 0):
+        return "mu_max", mu_max, "expected a positive number or null"
     scale = values["step_scale"]
     if scale is not None:
         try:
@@ -476,7 +484,10 @@ class BDLSTM(nn.Module):
         logvar = self.fc_logvar(e)
         if self.config.logvar_max is not None:
             logvar = logvar.clamp(max=self.config.logvar_max)
-        return self.fc_mu(e), logvar
+        mu = self.fc_mu(e)
+        if self.config.mu_max is not None:
+            mu = self.config.mu_max * torch.tanh(mu / self.config.mu_max)
+        return mu, logvar
 
     def _decode_vm(self, h: torch.Tensor, fc: _FC, residual: torch.Tensor | None = None) -> torch.Tensor:
         """``(B, L)`` -> ``dX`` ``(V, C, B)`` (``residual + dX`` when a residual is given)."""

@@ -82,6 +82,9 @@ def register(sub) -> None:
                    help="clamp the encoder's log-variance to at most X, so the sampling noise never "
                    "exceeds exp(X / 2) (the default recipe: 0, the prior's spread); none: unbounded "
                    "(the paper)")
+    l.add_argument("--mu-max", type=_number_or_none, default=None, metavar="X|none",
+                   help="squash the latent mean softly into (-X, X) (X tanh(mu / X)), so a large step on "
+                   "the encoder cannot throw the latent far outside the prior; none: unbounded (both recipes)")
     l.add_argument("--grad-clip", type=_number_or_none, default=None, metavar="X|none",
                    help="clip the gradient's norm at X times the median norm of the last 100 iterations, "
                    "so one exploding roll-out cannot throw the weights far; none: no clipping (both recipes)")
@@ -108,7 +111,7 @@ def register(sub) -> None:
 
 
 def _number_or_none(text: str):
-    """``--logvar-max`` / ``--grad-clip`` / ``--ema-decay`` values: a number, or ``none`` (off; kept apart from "not given")."""
+    """``--logvar-max`` / ``--mu-max`` / ``--grad-clip`` / ``--ema-decay`` values: a number, or ``none`` (off; kept apart from "not given")."""
     if text.lower() == "none":
         return _UNBOUNDED
     try:
