@@ -619,7 +619,7 @@ def test_ema_option_is_checked_stored_and_its_training_weights_required(tmp_path
         with pytest.raises(MeshseqError, match="--ema-decay"):
             TrainConfig(ema_decay=bad)
     assert TrainConfig.from_dict({}).ema_decay is None  # runs stored before the option
-    assert RECIPES["paper"]["ema_decay"] is None
+    assert RECIPES["paper"]["ema_decay"] is None and RECIPES["default"]["ema_decay"] == 0.99
     seq, _ = limb()
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
@@ -629,6 +629,8 @@ def test_ema_option_is_checked_stored_and_its_training_weights_required(tmp_path
         assert main(["train", str(data), "--out", str(tmp_path / name), *extra, *TINY_CLI]) == 0
         got[name] = stored_configs(tmp_path / name)[0]["ema_decay"]
     assert got == {"e": 0.9, "n": None, "p": None}
+    assert main(["train", str(data), "--out", str(tmp_path / "d"), *TINY_CLI]) == 0
+    assert stored_configs(tmp_path / "d")[0]["ema_decay"] == 0.99
     # a training state without its training weights is refused on load, naming the tensor
     folder = ckpt.latest_checkpoint(tmp_path / "e")
     tensors = load_file(folder / "state.safetensors")

@@ -119,7 +119,7 @@ class TrainConfig:
     logvar_max: float | None = 0.0  # the default recipe (RECIPES); the paper: None (unbounded)
     mu_max: float | None = None  # off in both recipes (measured on horse-gallop: see RECIPES)
     grad_clip: float | None = None  # off in both recipes (measured on horse-gallop: see RECIPES)
-    ema_decay: float | None = None  # checkpoints deliver this moving average of the weights (None: the last weights)
+    ema_decay: float | None = 0.99  # the default recipe (RECIPES): checkpoints deliver a moving average; paper: None
     sample: bool = True
     eval_every: int = 100
     checkpoint_every: int = 500
