@@ -54,6 +54,16 @@ def small_model(seq, variant="bd", step_scale=None, seed=0):
     return BDLSTM(cfg, Topology.from_faces(seq.faces, seq.n_vertices))
 
 
+def twin_models(seq, **option):
+    """Two small models with the same weights: one with the model ``option``, one without."""
+    torch.manual_seed(0)
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    bounded = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, **option, **SMALL), topo)
+    free = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, **SMALL), topo)
+    free.load_state_dict(bounded.state_dict())
+    return bounded, free
+
+
 @pytest.mark.parametrize("variant", ["bd", "std-bd", "uni"])
 def test_given_frames_are_teacher_forced_then_the_chains_run_free(variant):
     seq, feats = limb()
@@ -397,11 +407,7 @@ def test_logvar_max_bounds_the_sampling_noise_and_is_stored(tmp_path):
     from meshseq.io import save_sequence
 
     seq, feats = limb()
-    torch.manual_seed(0)
-    topo = Topology.from_faces(seq.faces, seq.n_vertices)
-    bounded = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, logvar_max=0.0, **SMALL), topo)
-    free = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, **SMALL), topo)
-    free.load_state_dict(bounded.state_dict())
+    bounded, free = twin_models(seq, logvar_max=0.0)
     with torch.no_grad():
         free.fc_logvar.bias.fill_(3.0)  # a head asking for noise of spread e^1.5
         bounded.fc_logvar.bias.fill_(3.0)
@@ -653,11 +659,7 @@ def test_mu_max_squashes_the_latent_mean_softly_and_is_stored(tmp_path):
     from meshseq.io import save_sequence
 
     seq, feats = limb()
-    torch.manual_seed(0)
-    topo = Topology.from_faces(seq.faces, seq.n_vertices)
-    bounded = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, mu_max=2.0, **SMALL), topo)
-    free = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, **SMALL), topo)
-    free.load_state_dict(bounded.state_dict())
+    bounded, free = twin_models(seq, mu_max=2.0)
     with torch.no_grad():
         for net in (free, bounded):
             net.fc_mu.bias[:8] = 5.0  # a head throwing half the latent far outside the prior

@@ -312,6 +312,16 @@ def check_model_tensors(tensors: dict, expected: dict, file: Path) -> None:
     check_like(tensors, want, file, exact=True)
 
 
+def _check_like_parameter(t: torch.Tensor, params: dict, name: str, file: Path, key: str, what: str) -> None:
+    """CheckpointError unless ``name`` is a parameter and ``t`` has its dtype and shape."""
+    if name not in params:
+        raise CheckpointError(file, key, f"{what} of an unknown parameter")
+    p = params[name]
+    if t.dtype != p.dtype or t.shape != p.shape:
+        raise CheckpointError(file, key, f"{t.dtype} {tuple(t.shape)}, expected {p.dtype} {tuple(p.shape)} "
+                              "(its parameter)")
+
+
 def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> None:
     """CheckpointError unless state.safetensors holds Adam moments ``optim.<param>.<key>`` shaped
     like the parameters ``params`` (name -> tensor) for exactly the parameters with step counts in
@@ -327,21 +337,10 @@ def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> 
     for key, t in tensors.items():
         if key.startswith("optim."):
             name, _, sub = key[len("optim."):].rpartition(".")
-            if name not in params:
-                raise CheckpointError(file, key, "moments of an unknown parameter")
-            p = params[name]
-            if t.dtype != p.dtype or t.shape != p.shape:
-                raise CheckpointError(file, key, f"{t.dtype} {tuple(t.shape)}, expected {p.dtype} "
-                                      f"{tuple(p.shape)} (its parameter)")
+            _check_like_parameter(t, params, name, file, key, "moments")
             moments.setdefault(name, set()).add(sub)
         elif key.startswith("train."):  # the weights training continues from (behind a weight average)
-            name = key[len("train."):]
-            if name not in params:
-                raise CheckpointError(file, key, "weights of an unknown parameter")
-            p = params[name]
-            if t.dtype != p.dtype or t.shape != p.shape:
-                raise CheckpointError(file, key, f"{t.dtype} {tuple(t.shape)}, expected {p.dtype} "
-                                      f"{tuple(p.shape)} (its parameter)")
+            _check_like_parameter(t, params, key[len("train."):], file, key, "weights")
         elif key == "rng.torch" or key.startswith("rng.torch.rank"):
             try:
                 torch.Generator().set_state(t)
