@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -34,14 +33,14 @@ def training_rows(meta: dict, max_windows: int) -> np.ndarray:
     return sampler.rows(picks)
 
 
-def checkpoint_losses(folder: Path, frames, rows: np.ndarray) -> dict:
-    """``{"delivered": {rec, bd}, "training": {rec, bd} or None}`` of one checkpoint folder."""
+def checkpoint_losses(loaded, frames, rows: np.ndarray) -> dict:
+    """``{"delivered": {rec, bd}, "training": {rec, bd} or None}`` of one loaded checkpoint
+    (``checkpoint.load_folder(..., with_state=True)``)."""
     import torch
 
     from meshseq import checkpoint as ckpt
-    from meshseq.train import window_losses
+    from meshseq.train import copy_weights, window_losses
 
-    loaded = ckpt.load_folder(folder, with_state=True)
     net = loaded.net.eval()
     windows = frames[torch.from_numpy(rows)]
 
@@ -51,11 +50,10 @@ def checkpoint_losses(folder: Path, frames, rows: np.ndarray) -> dict:
         return {"rec": float(terms["rec"]), "bd": float(terms["bd"])}
 
     out = {"delivered": losses(), "training": None}
-    raw = {k[len("train."):]: v for k, v in loaded.state_tensors.items() if k.startswith("train.")}
+    raw = ckpt.training_weights(loaded.state_tensors)
     if raw:
-        with torch.no_grad():
-            for name, p in net.named_parameters():
-                p.copy_(raw[name])
+        names, params = zip(*net.named_parameters())
+        copy_weights(list(params), [raw[n] for n in names])
         out["training"] = losses()
     return out
 
@@ -72,12 +70,13 @@ def main() -> None:
 
     from meshseq import checkpoint as ckpt
     from meshseq.acap import Scaling
+    from meshseq.errors import MeshseqError
     from meshseq.train import load_training_data
 
     torch.set_num_threads(args.threads)
-    folders = [f for f in ckpt.list_checkpoints(args.run) if ckpt.is_valid(f)]
+    folders = ckpt.list_checkpoints(args.run)
     if not folders:
-        sys.exit(f"average_study: {args.run}: no usable checkpoint")
+        sys.exit(f"average_study: {args.run}: no checkpoint")
     meta = ckpt.load_folder(folders[-1]).meta
     data = load_training_data(args.data, consistency=meta["train"]["consistency"])
     if [d["source"] for d in meta["datasets"]] != data.sources:
@@ -90,8 +89,13 @@ def main() -> None:
     print(f"{args.run}: {len(rows)} training window(s) of {rows.shape[1]} frames; ema_decay {decay}")
     print("| iteration | delivered L_rec | delivered L_bd | training-weights L_rec | training-weights L_bd |")
     print("|---|---|---|---|---|")
-    for folder in folders:
-        r = checkpoint_losses(folder, frames, rows)
+    for folder in folders:  # each loaded (and checked) once; a damaged one is named and skipped
+        try:
+            loaded = ckpt.load_folder(folder, with_state=True)
+        except MeshseqError as err:
+            print(f"| {folder.name} | skipped: {err} | | | |", flush=True)
+            continue
+        r = checkpoint_losses(loaded, frames, rows)
         d, t = r["delivered"], r["training"] or {"rec": float("nan"), "bd": float("nan")}
         print(f"| {int(folder.name)} | {d['rec']:.1f} | {d['bd']:.1f} | {t['rec']:.1f} | {t['bd']:.1f} |", flush=True)
 

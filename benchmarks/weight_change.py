@@ -27,8 +27,7 @@ def main() -> None:
 
     def weights(iteration: int) -> dict:
         loaded = ckpt.load_folder(ckpt.checkpoint_root(args.run) / f"{iteration:08d}", with_state=True)
-        raw = {k[len("train."):]: v for k, v in loaded.state_tensors.items() if k.startswith("train.")}
-        return raw or {n: p.detach() for n, p in loaded.net.named_parameters()}
+        return ckpt.training_weights(loaded.state_tensors) or {n: p.detach() for n, p in loaded.net.named_parameters()}
 
     wa, wb = weights(args.a), weights(args.b)
     print(f"{args.run}: iterations {args.a} -> {args.b}")

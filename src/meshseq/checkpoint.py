@@ -350,6 +350,12 @@ def load_optimizer_state(optimizer: torch.optim.Optimizer, names: list[str], ten
     optimizer.load_state_dict({"state": state, "param_groups": groups})
 
 
+def training_weights(state_tensors: dict) -> dict:
+    """The weights training continues from, stored as ``train.<name>`` in the training state
+    behind a weight average (``--ema-decay``): ``{name: tensor}``, empty for runs without one."""
+    return {k[len("train."):]: v for k, v in state_tensors.items() if k.startswith("train.")}
+
+
 def rng_key(kind: str, rank: int = 0) -> str:
     """Tensor name of a generator state (``kind`` torch or cuda): ``rng.torch`` for rank 0 and
     single-process runs, ``rng.torch.rank<R>`` for the other processes of a distributed run."""

@@ -636,6 +636,13 @@ def update_average(average: list[torch.Tensor], parameters: list[torch.Tensor], 
             a.lerp_(p.detach(), 1.0 - decay)
 
 
+def copy_weights(parameters: list[torch.Tensor], values: list[torch.Tensor]) -> None:
+    """Copy ``values`` into ``parameters`` in place (lists of like tensors; no autograd)."""
+    with torch.no_grad():
+        for p, v in zip(parameters, values):
+            p.copy_(v)
+
+
 @contextlib.contextmanager
 def weights_swapped(parameters: list[torch.Tensor], weights: list[torch.Tensor] | None):
     """Run the body with ``weights`` copied into ``parameters``, then restore them bit for bit
@@ -643,16 +650,12 @@ def weights_swapped(parameters: list[torch.Tensor], weights: list[torch.Tensor] 
     if weights is None:
         yield
         return
-    with torch.no_grad():
-        kept = [p.detach().clone() for p in parameters]
-        for p, w in zip(parameters, weights):
-            p.copy_(w)
+    kept = [p.detach().clone() for p in parameters]
+    copy_weights(parameters, weights)
     try:
         yield
     finally:
-        with torch.no_grad():
-            for p, k in zip(parameters, kept):
-                p.copy_(k)
+        copy_weights(parameters, kept)
 
 
 def divergence(it: int, names: list[str], values: torch.Tensor, lr: float, last_checkpoint: str | None) -> str:
@@ -802,13 +805,11 @@ def train(
     if config.ema_decay is not None:
         average = [p.detach().clone() for p in params]  # a fresh run: the initial weights; a resume: the stored average
         if found is not None:
-            raw = {k[len("train."):]: v for k, v in found.state_tensors.items() if k.startswith("train.")}
+            raw = ckpt.training_weights(found.state_tensors)
             if set(raw) != set(param_names):
                 raise MeshseqError(f"--resume: {found.folder}: the training state lacks the weights (train.*) "
                                    "behind its weight average (ema_decay)")
-            with torch.no_grad():
-                for n, p in zip(param_names, params):
-                    p.copy_(raw[n])
+            copy_weights(params, [raw[n] for n in param_names])
     if dist_info.rank > 0 and not own_rng:
         # different sampling noise per rank (the windows stay common)
         torch.manual_seed(config.seed + 7919 * dist_info.rank + start)
@@ -959,9 +960,7 @@ def train(
         if dist_info.started_here:
             torch.distributed.destroy_process_group()
     if average is not None:  # return what the checkpoints deliver
-        with torch.no_grad():
-            for p, a in zip(params, average):
-                p.copy_(a)
+        copy_weights(params, average)
     last["model"] = model
     return last
 
