@@ -271,10 +271,64 @@ def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch):
         return total.detach(), {n: p.grad.clone() for n, p in m.named_parameters()}
 
     fast_loss, fast = run()
-    monkeypatch.setattr(m, "rollout", lambda first, steps, state, sample=False, n_forward=None:
+    monkeypatch.setattr(m, "rollout", lambda first, steps, state, sample=False, n_forward=None, feedback_grad=True:
                         _reference_rollout(m, first, steps, state, n_forward))
     ref_loss, ref = run()
     assert abs(float(fast_loss) - float(ref_loss)) <= 1e-5 * abs(float(ref_loss))
     for n in ref:
         err = (fast[n] - ref[n]).norm() / ref[n].norm()
+        assert err <= 1e-5, f"{n}: relative error {float(err):.2e}"
+
+
+def _reference_rollout_fed_back_as_constants(m, first, steps, state, n_forward):
+    """The plain step-by-step roll-out, each generated frame detached before the encoder reads it."""
+    fc = m._fc_ops(deferred=False, fused=False)
+    x = first.permute(1, 2, 0)
+    frames, mus, logvars = [x], [], []
+    for _ in range(steps):
+        mu, logvar = m._encode_vm(x.detach(), fc)
+        z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu)
+        h, state = m._lstm(z, state, n_forward)
+        x = m._decode_vm(h, fc, residual=x)
+        frames.append(x)
+        mus.append(mu)
+        logvars.append(logvar)
+    return torch.stack(frames).permute(3, 0, 1, 2), torch.stack(mus), torch.stack(logvars), state
+
+
+def test_feedback_grad_stop_treats_fed_back_frames_as_constants(limb, monkeypatch):
+    """``feedback_grad="stop"``: the same loss as "full", the gradients of a roll-out whose encoder
+    reads detached frames (to 1e-5 relative); the frames then depend on the first one only through
+    the residual path (with "full" also through the encoder)."""
+    from meshseq.train import TrainConfig, WindowLoss
+
+    m = make(limb, latent=16, layers=3)
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    w = torch.randn(3, 6, limb.n_vertices, 9) * 0.3
+
+    def run(feedback_grad):
+        m.zero_grad()
+        torch.manual_seed(1)
+        total, _ = WindowLoss(m, TrainConfig(feedback_grad=feedback_grad))(w)
+        total.backward()
+        return total.detach(), {n: p.grad.clone() for n, p in m.named_parameters()}
+
+    # stop: the frames depend on the first one only through the residual, d(last)/d(first) = I
+    first = w[:, 0].clone().requires_grad_(True)
+    for feedback_grad, identity in ((False, True), (True, False)):
+        frames = m.rollout(first, 4, m.initial_state(3), sample=False, feedback_grad=feedback_grad)[0]
+        (g,) = torch.autograd.grad(frames[:, -1].sum(), first)
+        assert torch.equal(g, torch.ones_like(g)) == identity
+
+    full_loss, _ = run("full")
+    stop_loss, stop = run("stop")
+    assert abs(float(stop_loss) - float(full_loss)) <= 1e-6 * abs(float(full_loss))
+    monkeypatch.setattr(m, "rollout", lambda first, steps, state, sample=False, n_forward=None, feedback_grad=True:
+                        _reference_rollout_fed_back_as_constants(m, first, steps, state, n_forward))
+    ref_loss, ref = run("stop")
+    assert abs(float(stop_loss) - float(ref_loss)) <= 1e-5 * abs(float(ref_loss))
+    for n in ref:
+        err = (stop[n] - ref[n]).norm() / ref[n].norm()
         assert err <= 1e-5, f"{n}: relative error {float(err):.2e}"

@@ -691,3 +691,21 @@ def test_mu_max_squashes_the_latent_mean_softly_and_is_stored(tmp_path):
     assert meshseq.load(tmp_path / "m").net.config.mu_max == 3.0
     assert main(["train", str(data), "--out", str(tmp_path / "n"), "--mu-max", "none", *TINY_CLI]) == 0
     assert stored_configs(tmp_path / "n")[1]["mu_max"] is None
+
+
+def test_feedback_grad_option_is_checked_and_stored(tmp_path):
+    from meshseq.cli import main
+    from meshseq.io import save_sequence
+
+    with pytest.raises(MeshseqError, match="--feedback-grad 'none'"):
+        TrainConfig(feedback_grad="none")
+    assert TrainConfig.from_dict({}).feedback_grad == "full"  # runs stored before the option
+    assert RECIPES["paper"]["feedback_grad"] == "full"
+    seq, _ = limb()
+    data = tmp_path / "limb.npz"
+    save_sequence(seq, data)
+    got = {}
+    for name, extra in (("s", ["--feedback-grad", "stop"]), ("d", []), ("p", ["--recipe", "paper"])):
+        assert main(["train", str(data), "--out", str(tmp_path / name), *extra, *TINY_CLI]) == 0
+        got[name] = stored_configs(tmp_path / name)[0]["feedback_grad"]
+    assert got == {"s": "stop", "d": TrainConfig().feedback_grad, "p": "full"}

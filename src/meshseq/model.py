@@ -505,8 +505,8 @@ class BDLSTM(nn.Module):
                 y = torch.tanh(y)
         return y if residual is None else residual + y
 
-    def _step_vm(self, state, x, fc: _FC, sample: bool, n_forward):
-        mu, logvar = self._encode_vm(x, fc)
+    def _step_vm(self, state, x, fc: _FC, sample: bool, n_forward, feedback_grad: bool = True):
+        mu, logvar = self._encode_vm(x if feedback_grad else x.detach(), fc)
         z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         h, state = self._lstm(z, state, n_forward)
         if self.config.step_scale is not None:
@@ -560,8 +560,13 @@ class BDLSTM(nn.Module):
         state, nxt, mu, logvar = self._step_vm(state, x.permute(1, 2, 0), self._fc_ops(), sample, n_forward)
         return state, nxt.permute(2, 0, 1), mu, logvar
 
-    def rollout(self, first: torch.Tensor, steps: int, state, sample: bool = False, n_forward=None):
+    def rollout(self, first: torch.Tensor, steps: int, state, sample: bool = False, n_forward=None,
+                feedback_grad: bool = True):
         """Free-running roll-out from ``first`` ``(B, V, C)``.
+
+        ``feedback_grad=False``: each generated frame enters the next step's encoder as a constant
+        (no gradient flows back through the encoder into the frames it was fed); the gradient
+        still flows through the LSTM state and the residual ``X + dX``. Training only.
 
         Returns ``(frames (B, steps + 1, V, C)`` with ``frames[:, 0] = first``, ``mu``, ``logvar``
         ``(steps, B, L)``, final state)``. The time loop is the only Python loop.
@@ -570,7 +575,7 @@ class BDLSTM(nn.Module):
         x = first.permute(1, 2, 0).contiguous()  # (V, C, B)
         frames, mus, logvars = [x], [], []
         for _ in range(steps):
-            state, x, mu, logvar = self._step_vm(state, x, fc, sample, n_forward)
+            state, x, mu, logvar = self._step_vm(state, x, fc, sample, n_forward, feedback_grad)
             frames.append(x)
             mus.append(mu)
             logvars.append(logvar)
@@ -581,12 +586,14 @@ class BDLSTM(nn.Module):
         empty = first.new_zeros(0, first.shape[0], self.config.latent)
         return out, empty, empty, state
 
-    def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1) -> dict:
+    def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1,
+                feedback_grad: bool = True) -> dict:
         """Both chains over ground-truth windows ``(B, n, V, C)`` in one batched pass.
 
         ``given`` (the paper: 1): each chain is fed its first ``given`` ground-truth frames
         (teacher-forced warm-up, as ``predict`` does with U given frames), then runs free. The
         outputs after a true frame are one-step predictions; every output counts in the loss.
+        ``feedback_grad``: see ``rollout`` (False: the generated frames fed back are constants).
 
         Returns a dict with ``forward`` ``(B, n, V, C)`` (S^f_1..S^f_n, S^f_1 = X_1), ``backward``
         ``(B, n, V, C)`` in the backward chain's own order (S^b_1 = X_n, ..., S^b_n ~ X_1; None for
@@ -608,7 +615,7 @@ class BDLSTM(nn.Module):
             mus.append(mu)
             logvars.append(logvar)
         frames, mu, logvar, _ = self.rollout(first(given - 1), n - given, state, sample=sample,
-                                             n_forward=n_forward)
+                                             n_forward=n_forward, feedback_grad=feedback_grad)
         if outs:  # after the warm-up: its frames, then the free chain without its (true) first frame
             frames = torch.cat(outs + [frames[:, 1:]], 1)
             mu, logvar = torch.cat(mus + [mu]), torch.cat(logvars + [logvar])

@@ -76,6 +76,11 @@ FC_REFERENCE_FAN_IN = 9000
 #: ``kl_scale``: ``vertices`` multiplies w_kl by ``V / KL_REFERENCE_VERTICES`` (see ``kl_weight``);
 #: ``none``: w_kl as given (the paper).
 KL_SCALES = ("vertices", "none")
+#: ``feedback_grad``: ``full`` backpropagates through the generated frames fed back into the
+#: encoder (the paper: one computation graph over the roll-out); ``stop`` treats each fed-back frame
+#: as a constant input (``BDLSTM.rollout``), so the gradient no longer loops through the mesh
+#: features; it still flows through the LSTM state and the residual ``X + dX``.
+FEEDBACK_GRADS = ("full", "stop")
 #: The mesh size at which the recipe study chose w_kl = 0.1 (the 1,000-vertex body set).
 KL_REFERENCE_VERTICES = 1000
 #: ``grad_clip``: the gradient's norm is clipped at ``grad_clip`` times the median norm of the last
@@ -89,7 +94,7 @@ EMA_WARMUP = 10
 #: those runs (TrainConfig.from_dict fills it in when a stored config lacks the field).
 LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "logvar_max": None,
                          "grad_clip": None, "adam_beta2": 0.999, "ema_decay": None,
-                         "mu_max": None}
+                         "mu_max": None, "feedback_grad": "full"}
 
 @dataclass
 class TrainConfig:
@@ -120,6 +125,7 @@ class TrainConfig:
     mu_max: float | None = None  # off in both recipes (measured on horse-gallop: see RECIPES)
     grad_clip: float | None = None  # off in both recipes (measured on horse-gallop: see RECIPES)
     ema_decay: float | None = 0.99  # the default recipe (RECIPES): checkpoints deliver a moving average; paper: None
+    feedback_grad: str = "full"  # both recipes (the paper); "stop": see FEEDBACK_GRADS
     sample: bool = True
     eval_every: int = 100
     checkpoint_every: int = 500
@@ -158,6 +164,8 @@ class TrainConfig:
             raise MeshseqError(f"--grad-clip {self.grad_clip!r}: expected a positive number or none")
         if self.ema_decay is not None and not (is_finite_number(self.ema_decay) and 0 < self.ema_decay < 1):
             raise MeshseqError(f"--ema-decay {self.ema_decay!r}: expected a number in (0, 1) or none")
+        if self.feedback_grad not in FEEDBACK_GRADS:
+            raise MeshseqError(f"--feedback-grad {self.feedback_grad!r}: expected one of {', '.join(FEEDBACK_GRADS)}")
         if self.kl_scale not in KL_SCALES:
             raise MeshseqError(f"--kl-scale {self.kl_scale!r}: expected one of {', '.join(KL_SCALES)}")
         if self.precision not in PRECISIONS:
@@ -254,11 +262,11 @@ class TrainConfig:
 #:   remove horse-gallop's spikes: at their peak the average is 2-10 x better, during recovery it
 #:   lags (docs/recipe_study.md "A moving average of the weights").
 RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "given", "step_scale", "input_norm", "fc_lr",
-                  "kl_scale", "logvar_max", "mu_max", "grad_clip", "ema_decay")
+                  "kl_scale", "logvar_max", "mu_max", "grad_clip", "ema_decay", "feedback_grad")
 RECIPES = {
     "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "w_motion": 0.0, "given": 1, "step_scale": "none",
               "input_norm": False, "fc_lr": "none", "kl_scale": "none", "logvar_max": None, "grad_clip": None,
-              "ema_decay": None, "mu_max": None},
+              "ema_decay": None, "mu_max": None, "feedback_grad": "full"},
     "default": {name: TrainConfig.__dataclass_fields__[name].default for name in RECIPE_OPTIONS},
 }
 
@@ -352,9 +360,10 @@ class WindowLoss(nn.Module):
         self.model = model
         self.weights = {"rec": config.w_rec, "bd": config.w_bd, "l2": config.w_l2, "motion": config.w_motion,
                         "kl": kl_weight(config.w_kl, model.config.n_vertices, config.kl_scale)}
+        self.feedback_grad = config.feedback_grad == "full"
 
     def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1):
-        out = self.model(windows, sample=sample, given=given)
+        out = self.model(windows, sample=sample, given=given, feedback_grad=self.feedback_grad)
         terms = window_losses(out, windows)
         if self.weights["motion"] > 0:
             terms["motion"] = motion_loss(out, windows)

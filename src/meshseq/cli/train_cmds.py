@@ -92,6 +92,10 @@ def register(sub) -> None:
                    help="checkpoints deliver an exponential moving average of the weights with decay X "
                    "(about the last 1 / (1 - X) iterations), so a loss spike near the end does not reach "
                    "the delivered model; none: the last weights (the paper)")
+    l.add_argument("--feedback-grad", choices=("full", "stop"), default=None,
+                   help="full: backpropagate through the generated frames fed back into the encoder (both "
+                   "recipes, the paper); stop: each fed-back frame is a constant input, so the gradient "
+                   "does not loop through the mesh features (it still flows through the LSTM state)")
     l.add_argument("--no-kl", action="store_true", help="drop L_KL (paper Table 1 ablation)")
     l.add_argument("--no-l2", action="store_true", help="drop L_2 (paper Fig. 3 ablation)")
     d = p.add_argument_group("data")
