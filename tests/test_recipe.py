@@ -277,18 +277,21 @@ def test_fc_learning_rate_scales_with_the_fan_in(monkeypatch):
     assert T.fc_lr_factor(90000, "none") == 1.0
     [one] = T.parameter_groups(net, cfg)  # below the reference: one rate
     assert one["names"] == [n for n, _ in net.named_parameters()] and "lr" not in one
-    monkeypatch.setattr(T, "FC_REFERENCE_FAN_IN", fan_in // 4)  # as if the mesh were 4x the reference
-    rest, fc = T.parameter_groups(net, cfg)
+    rest, fc = T.parameter_groups(net, TrainConfig(lr=2e-3, fc_lr_fan_in=fan_in // 4))  # as if 4x the reference
     assert fc["names"] == ["fc.weight"] and fc["params"][0] is net.fc.weight
     assert fc["lr"] == pytest.approx(2e-3 * (fan_in // 4) / fan_in)
     assert "fc.weight" not in rest["names"] and len(rest["params"]) == len(list(net.parameters())) - 1
     assert len(T.parameter_groups(net, TrainConfig(lr=2e-3, fc_lr="none"))) == 1
     with pytest.raises(MeshseqError, match="--fc-lr"):
         TrainConfig(fc_lr="small")
-    # a config stored before the option existed reproduces its run: one rate
+    for bad in (0, -5, 2.5, True, "900"):
+        with pytest.raises(MeshseqError, match="--fc-lr-fan-in"):
+            TrainConfig(fc_lr_fan_in=bad)
+    # a config stored before the options existed reproduces its run: one rate, the reference 9000
     stored = TrainConfig().to_dict()
-    del stored["fc_lr"]
+    del stored["fc_lr"], stored["fc_lr_fan_in"]
     assert TrainConfig.from_dict(stored).fc_lr == "none"
+    assert TrainConfig.from_dict(stored).fc_lr_fan_in == T.FC_REFERENCE_FAN_IN == 9000
 
 
 def test_two_learning_rates_train_as_set_and_resume_bit_for_bit(tmp_path, monkeypatch):
@@ -298,9 +301,8 @@ def test_two_learning_rates_train_as_set_and_resume_bit_for_bit(tmp_path, monkey
 
     seq, feats = limb()
     fan_in = seq.n_vertices * 9
-    monkeypatch.setattr(T, "FC_REFERENCE_FAN_IN", fan_in // 4)
     data = training_data(seq, feats)
-    cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=3, log_every=1, lr=1e-3)
+    cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=3, log_every=1, lr=1e-3, fc_lr_fan_in=fan_in // 4)
     one = train(data, tmp_path / "a", TrainConfig(iterations=6, **cfg), SMALL, progress=False, log=None)
     train(data, tmp_path / "b", TrainConfig(iterations=3, **cfg), SMALL, progress=False, log=None)
     two = train(data, tmp_path / "b", TrainConfig(iterations=6, **cfg), SMALL, resume=True, progress=False, log=None)
@@ -311,8 +313,8 @@ def test_two_learning_rates_train_as_set_and_resume_bit_for_bit(tmp_path, monkey
     assert [g["lr"] for g in groups] == pytest.approx([1e-3, 1e-3 * (fan_in // 4) / fan_in])
     assert groups[1]["params"] == ["fc.weight"]
     # the FC moved less than under one rate, the rest alike in scale: the rate took effect
-    monkeypatch.setattr(T, "FC_REFERENCE_FAN_IN", 9000)
-    same = train(data, tmp_path / "c", TrainConfig(iterations=6, **cfg), SMALL, progress=False, log=None)
+    same = train(data, tmp_path / "c", TrainConfig(iterations=6, **(cfg | {"fc_lr_fan_in": 9000})), SMALL,
+                 progress=False, log=None)
     torch.manual_seed(0)
     init = small_model(seq).fc.weight.detach()  # what train() starts from (seed 0)
     moved = (one["model"].fc.weight.detach() - init).abs().mean()
@@ -709,3 +711,23 @@ def test_feedback_grad_option_is_checked_and_stored(tmp_path):
         assert main(["train", str(data), "--out", str(tmp_path / name), *extra, *TINY_CLI]) == 0
         got[name] = stored_configs(tmp_path / name)[0]["feedback_grad"]
     assert got == {"s": "stop", "d": TrainConfig().feedback_grad, "p": "full"}
+
+
+def test_fc_lr_fan_in_option_is_stored_and_sets_the_fc_rate(tmp_path):
+    import json
+
+    from meshseq.cli import main
+    from meshseq.io import save_sequence
+
+    seq, _ = limb()
+    data = tmp_path / "limb.npz"
+    save_sequence(seq, data)
+    fan_in = seq.n_vertices * 9
+    assert main(["train", str(data), "--out", str(tmp_path / "r"), "--fc-lr-fan-in", str(fan_in // 2),
+                 *TINY_CLI]) == 0
+    assert stored_configs(tmp_path / "r")[0]["fc_lr_fan_in"] == fan_in // 2
+    state = json.loads(next((tmp_path / "r" / "checkpoints").glob("*/state.json")).read_text())
+    lrs = [g["lr"] for g in state["optimizer"]["param_groups"]]
+    assert len(lrs) == 2 and lrs[1] == pytest.approx(lrs[0] / 2)
+    assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper", *TINY_CLI]) == 0
+    assert stored_configs(tmp_path / "p")[0]["fc_lr_fan_in"] == RECIPES["paper"]["fc_lr_fan_in"]

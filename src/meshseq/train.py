@@ -69,9 +69,10 @@ METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "motio
 
 STEP_SCALES = ("none", "data")
 #: ``fc_lr``: ``fan-in`` scales the Adam learning rate of the big FC weight (encoder V*9 -> L,
-#: tied to the decoder) by ``min(1, FC_REFERENCE_FAN_IN / (V * 9))``; ``none``: one rate for all.
+#: tied to the decoder) by ``min(1, fc_lr_fan_in / (V * 9))``; ``none``: one rate for all.
 FC_LRS = ("fan-in", "none")
-#: The FC fan-in at which the recipe study chose lr = 1e-3 (the 1,000-vertex body set).
+#: The FC fan-in at which the recipe study chose lr = 1e-3 (the 1,000-vertex body set): the
+#: ``fc_lr_fan_in`` of runs stored before the option.
 FC_REFERENCE_FAN_IN = 9000
 #: ``kl_scale``: ``vertices`` multiplies w_kl by ``V / KL_REFERENCE_VERTICES`` (see ``kl_weight``);
 #: ``none``: w_kl as given (the paper).
@@ -94,7 +95,8 @@ EMA_WARMUP = 10
 #: those runs (TrainConfig.from_dict fills it in when a stored config lacks the field).
 LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "logvar_max": None,
                          "grad_clip": None, "adam_beta2": 0.999, "ema_decay": None,
-                         "mu_max": None, "feedback_grad": "full"}
+                         "mu_max": None, "feedback_grad": "full",
+                         "fc_lr_fan_in": FC_REFERENCE_FAN_IN}
 
 @dataclass
 class TrainConfig:
@@ -120,6 +122,7 @@ class TrainConfig:
     step_scale: str = "none"
     input_norm: bool = True  # the default recipe (RECIPES); the paper: False
     fc_lr: str = "fan-in"  # the default recipe (RECIPES); the paper: "none"
+    fc_lr_fan_in: int = FC_REFERENCE_FAN_IN  # with fc_lr "fan-in": the FC rate is lr x min(1, this / (V x 9))
     kl_scale: str = "vertices"  # the default recipe (RECIPES); the paper: "none"
     logvar_max: float | None = 0.0  # the default recipe (RECIPES); the paper: None (unbounded)
     mu_max: float | None = None  # off in both recipes (measured on horse-gallop: see RECIPES)
@@ -156,6 +159,9 @@ class TrainConfig:
             raise MeshseqError(f"--step-scale {self.step_scale!r}: expected one of {', '.join(STEP_SCALES)}")
         if self.fc_lr not in FC_LRS:
             raise MeshseqError(f"--fc-lr {self.fc_lr!r}: expected one of {', '.join(FC_LRS)}")
+        if isinstance(self.fc_lr_fan_in, bool) or not isinstance(self.fc_lr_fan_in, (int, np.integer)) \
+                or self.fc_lr_fan_in < 1:
+            raise MeshseqError(f"--fc-lr-fan-in {self.fc_lr_fan_in!r}: expected a positive integer")
         if self.logvar_max is not None and not is_finite_number(self.logvar_max):
             raise MeshseqError(f"--logvar-max {self.logvar_max!r}: expected a number")
         if self.mu_max is not None and not (is_finite_number(self.mu_max) and self.mu_max > 0):
@@ -261,11 +267,12 @@ class TrainConfig:
 #:   two seeds), worse only at 150 of seed 1 (warm-up); motion 0.75-0.95 of the truth's. It does not
 #:   remove horse-gallop's spikes: at their peak the average is 2-10 x better, during recovery it
 #:   lags (docs/recipe_study.md "A moving average of the weights").
-RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "given", "step_scale", "input_norm", "fc_lr",
+RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "given", "step_scale", "input_norm", "fc_lr", "fc_lr_fan_in",
                   "kl_scale", "logvar_max", "mu_max", "grad_clip", "ema_decay", "feedback_grad")
 RECIPES = {
     "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "w_motion": 0.0, "given": 1, "step_scale": "none",
-              "input_norm": False, "fc_lr": "none", "kl_scale": "none", "logvar_max": None, "grad_clip": None,
+              "input_norm": False, "fc_lr": "none", "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "kl_scale": "none",
+              "logvar_max": None, "grad_clip": None,
               "ema_decay": None, "mu_max": None, "feedback_grad": "full"},
     "default": {name: TrainConfig.__dataclass_fields__[name].default for name in RECIPE_OPTIONS},
 }
@@ -590,16 +597,17 @@ def resume_point(run_dir: Path) -> "ckpt.Loaded":
         raise MeshseqError(f"--resume: {err}; {hint}") from None
 
 
-def fc_lr_factor(fan_in: int, fc_lr: str) -> float:
-    """The factor on the FC weight's learning rate (``fc_lr``: ``fan-in`` or ``none``)."""
-    return min(1.0, FC_REFERENCE_FAN_IN / fan_in) if fc_lr == "fan-in" else 1.0
+def fc_lr_factor(fan_in: int, fc_lr: str, reference: int = FC_REFERENCE_FAN_IN) -> float:
+    """The factor on the FC weight's learning rate (``fc_lr``: ``fan-in`` or ``none``):
+    ``min(1, reference / fan_in)`` with ``fan-in``."""
+    return min(1.0, reference / fan_in) if fc_lr == "fan-in" else 1.0
 
 
 def parameter_groups(model: BDLSTM, config: TrainConfig) -> list[dict]:
     """Adam's parameter groups: ``[{"params", "names"(, "lr")}]``; with ``fc_lr="fan-in"`` and a
     mesh over 1,000 vertices the FC weight gets its own, smaller rate (see ``RECIPES``)."""
     named = list(model.named_parameters())
-    factor = fc_lr_factor(model.fc.weight.shape[1], config.fc_lr)
+    factor = fc_lr_factor(model.fc.weight.shape[1], config.fc_lr, config.fc_lr_fan_in)
     if factor == 1.0:
         return [{"params": [p for _, p in named], "names": [n for n, _ in named]}]
     rest = [(n, p) for n, p in named if n != "fc.weight"]

@@ -72,8 +72,11 @@ def register(sub) -> None:
                    help="none: X' = X + dX (the paper); data: X' = X + s dX with s the RMS frame-to-frame "
                    "change of each channel in the training data")
     l.add_argument("--fc-lr", choices=("fan-in", "none"), default=None,
-                   help="fan-in: the big FC weight's learning rate times min(1, 9000 / (vertices x 9)), "
-                   "so large meshes train stably (the default recipe); none: one rate for all (the paper)")
+                   help="fan-in: the big FC weight's learning rate times min(1, N / (vertices x 9)) with N "
+                   "from --fc-lr-fan-in, so large meshes train stably (the default recipe); none: one rate "
+                   "for all (the paper)")
+    l.add_argument("--fc-lr-fan-in", type=int, default=None, metavar="N",
+                   help="with --fc-lr fan-in: the FC fan-in (vertices x 9) at which the FC weight learns at --lr")
     l.add_argument("--kl-scale", choices=("vertices", "none"), default=None,
                    help="vertices: the weight of L_KL times vertices / 1000, so its balance with the "
                    "per-vertex sums of L_rec does not depend on the mesh size (the default recipe); "
