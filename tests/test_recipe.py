@@ -731,3 +731,40 @@ def test_fc_lr_fan_in_option_is_stored_and_sets_the_fc_rate(tmp_path):
     assert len(lrs) == 2 and lrs[1] == pytest.approx(lrs[0] / 2)
     assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper", *TINY_CLI]) == 0
     assert stored_configs(tmp_path / "p")[0]["fc_lr_fan_in"] == RECIPES["paper"]["fc_lr_fan_in"]
+
+
+@pytest.mark.parametrize("given, fast", [(1, True), (3, True), (1, False)])
+def test_fc_lr_encoder_scales_only_the_encoders_share_of_the_fc_gradient(given, fast, monkeypatch):
+    """``fc_lr="encoder"``: the FC weight's gradient is the decoder's share plus f times the
+    encoder's share, f = min(1, fc_lr_fan_in / fan_in); every other gradient and the loss are
+    those of the plain objective (banked roll-out, teacher-forced warm-up steps, reference ops)."""
+    import meshseq.train as T
+
+    seq, feats = limb()
+    net = small_model(seq)
+    monkeypatch.setattr(net, "fast_path", fast)
+    windows = torch.from_numpy(feats[None, :6].astype(np.float32)).repeat(2, 1, 1, 1) * 0.5
+    fan_in = net.fc.weight.shape[1]
+
+    def grads(**option):
+        net.zero_grad()
+        total, _ = T.WindowLoss(net, TrainConfig(**option))(windows, sample=False, given=given)
+        total.backward()
+        return float(total.detach()), {n: p.grad.clone() for n, p in net.named_parameters()}
+
+    plain_loss, plain = grads(fc_lr="none")
+    none_loss, decoder_only = grads(fc_lr="encoder", fc_lr_fan_in=1)  # f = 1 / fan_in: the decoder's share, almost
+    loss, scaled = grads(fc_lr="encoder", fc_lr_fan_in=fan_in // 4)
+    f = (fan_in // 4) / fan_in
+    assert T.encoder_grad_scale(fan_in, TrainConfig(fc_lr="encoder", fc_lr_fan_in=fan_in // 4)) == f
+    assert T.encoder_grad_scale(fan_in, TrainConfig(fc_lr="fan-in", fc_lr_fan_in=fan_in // 4)) == 1.0
+    assert loss == plain_loss == none_loss
+    g_min = 1 / fan_in
+    decoder = (decoder_only["fc.weight"] - g_min * plain["fc.weight"]) / (1 - g_min)  # exactly the decoder's share
+    expect = decoder + f * (plain["fc.weight"] - decoder)
+    assert torch.allclose(scaled["fc.weight"], expect, rtol=1e-4, atol=1e-6 * float(expect.abs().max()))
+    assert not torch.allclose(scaled["fc.weight"], plain["fc.weight"], rtol=1e-2)
+    for n in plain:
+        if n != "fc.weight":
+            assert torch.allclose(scaled[n], plain[n], rtol=1e-5, atol=1e-7), n
+    assert len(T.parameter_groups(net, TrainConfig(fc_lr="encoder", fc_lr_fan_in=fan_in // 4))) == 1

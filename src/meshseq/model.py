@@ -288,12 +288,15 @@ class MeshConv(nn.Module):
 class _GradBank:
     """Pairs ``(left (B, L), right (N, B))`` whose products ``(right left)^T`` sum to a weight gradient.
 
+    ``encoder_scale`` multiplies the encoder's pairs (``BDLSTM.encoder_grad_scale``).
+
     ``right`` is kept as the ``(N, B)`` frame it is (no transposing copy per step);
     the sum is ``(R L)^T`` with ``R = [right_1 ... right_T]`` ``(N, T B)`` (one 64-byte-row copy)."""
 
-    def __init__(self):
+    def __init__(self, encoder_scale: float = 1.0):
         self.left: list[torch.Tensor] = []
         self.right: list[torch.Tensor] = []
+        self.encoder_scale = encoder_scale  # ``BDLSTM.encoder_grad_scale``: on the encoder's pairs
 
     def gradient(self) -> torch.Tensor | None:
         if not self.left:
@@ -327,6 +330,20 @@ class _WeightGate(torch.autograd.Function):
         return g, None
 
 
+class _ScaleGradient(torch.autograd.Function):
+    """The identity whose backward multiplies the gradient by ``scale`` (the encoder's read of the
+    tied FC weight outside the banked roll-out: warm-up steps, the plain reference)."""
+
+    @staticmethod
+    def forward(ctx, weight, scale):
+        ctx.scale = scale
+        return weight.view_as(weight)
+
+    @staticmethod
+    def backward(ctx, grad):
+        return ctx.scale * grad, None
+
+
 class _Encode(torch.autograd.Function):
     """``e = x^T W^T + b``: x ``(N, B)`` (flattened frames), W ``(L, N)`` -> ``(B, L)``.
 
@@ -345,8 +362,9 @@ class _Encode(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g):  # g (B, L)
         x, weight = ctx.saved_tensors
-        ctx.bank.left.append(g.to(weight.dtype))
-        ctx.bank.right.append(x.to(weight.dtype))  # dW = g^T x^T = (x g)^T
+        scaled = g if ctx.bank.encoder_scale == 1.0 else ctx.bank.encoder_scale * g
+        ctx.bank.left.append(scaled.to(weight.dtype))
+        ctx.bank.right.append(x.to(weight.dtype))  # dW = g^T x^T = (x g)^T (times the encoder's scale)
         # (N, B) contiguous, the layout the conv layer's backward reads (no transposing copy)
         return torch.mm(weight.t(), g.t().to(weight.dtype)).to(g.dtype), None, g.sum(0), None
 
@@ -390,7 +408,9 @@ class _FC:
                 for k in range(K)
             ]
             self.ring = model.ring
-        self.bank = _GradBank() if deferred else None
+        scale = float(model.encoder_grad_scale)
+        self.bank = _GradBank(scale) if deferred else None
+        self.enc_weight = None  # the weight the encoder reads, when its gradient is scaled (not deferred)
         if deferred:
             self.weight = _WeightGate.apply(model.fc.weight, self.bank)
             dev = model.fc.weight.device.type
@@ -400,12 +420,15 @@ class _FC:
                 self.weight = self.weight.to(torch.bfloat16)
         else:
             self.weight = model.fc.weight
+            if scale != 1.0 and self.weight.requires_grad and torch.is_grad_enabled():
+                self.enc_weight = _ScaleGradient.apply(self.weight, scale)
         self.bias = model.fc.bias
         self.dec_bias = model.dec_fc_bias
 
     def encode(self, x):  # (V*C, B) -> (B, L)
         if self.bank is None:
-            return torch.addmm(self.bias[:, None], self.weight, x).t()
+            w = self.weight if self.enc_weight is None else self.enc_weight
+            return torch.addmm(self.bias[:, None], w, x).t()
         return _Encode.apply(x, self.weight, self.bias, self.bank)
 
     def decode(self, h):  # (B, L) -> (V*C, B)
@@ -428,6 +451,9 @@ class BDLSTM(nn.Module):
 
     #: roll-outs use the fused conv kernels (``meshseq.kernels``); False: the plain reference ops
     fast_path: bool = True
+    #: the factor on the encoder's share of the tied FC weight's gradient (the decoder's share and
+    #: every other gradient unchanged); set by training (``TrainConfig.fc_lr = "encoder"``), not stored
+    encoder_grad_scale: float = 1.0
 
     def __init__(self, config: ModelConfig, topology: Topology):
         super().__init__()

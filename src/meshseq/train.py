@@ -68,9 +68,13 @@ METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "motio
 
 
 STEP_SCALES = ("none", "data")
-#: ``fc_lr``: ``fan-in`` scales the Adam learning rate of the big FC weight (encoder V*9 -> L,
-#: tied to the decoder) by ``min(1, fc_lr_fan_in / (V * 9))``; ``none``: one rate for all.
-FC_LRS = ("fan-in", "none")
+#: ``fc_lr``: how the big FC weight (encoder V*9 -> L, tied to the decoder) learns on meshes whose
+#: fan-in V * 9 exceeds ``fc_lr_fan_in``, with ``f = min(1, fc_lr_fan_in / (V * 9))``:
+#: ``fan-in`` scales its Adam learning rate by f (both of its uses learn slower); ``encoder`` keeps
+#: one rate and scales the encoder's share of its gradient by f (``BDLSTM.encoder_grad_scale``: the
+#: encoder, whose output moves by up to rate x fan-in per step, is slowed; the decoder, fan-in L,
+#: is not); ``none``: one rate, the plain gradient (the paper).
+FC_LRS = ("fan-in", "encoder", "none")
 #: The FC fan-in at which the recipe study chose lr = 1e-3 (the 1,000-vertex body set): the
 #: ``fc_lr_fan_in`` of runs stored before the option.
 FC_REFERENCE_FAN_IN = 9000
@@ -122,7 +126,7 @@ class TrainConfig:
     step_scale: str = "none"
     input_norm: bool = True  # the default recipe (RECIPES); the paper: False
     fc_lr: str = "fan-in"  # the default recipe (RECIPES); the paper: "none"
-    fc_lr_fan_in: int = FC_REFERENCE_FAN_IN  # with fc_lr "fan-in": the FC rate is lr x min(1, this / (V x 9))
+    fc_lr_fan_in: int = FC_REFERENCE_FAN_IN  # the fan-in from which fc_lr acts (FC_LRS)
     kl_scale: str = "vertices"  # the default recipe (RECIPES); the paper: "none"
     logvar_max: float | None = 0.0  # the default recipe (RECIPES); the paper: None (unbounded)
     mu_max: float | None = None  # off in both recipes (measured on horse-gallop: see RECIPES)
@@ -368,6 +372,8 @@ class WindowLoss(nn.Module):
         self.weights = {"rec": config.w_rec, "bd": config.w_bd, "l2": config.w_l2, "motion": config.w_motion,
                         "kl": kl_weight(config.w_kl, model.config.n_vertices, config.kl_scale)}
         self.feedback_grad = config.feedback_grad == "full"
+        # how the tied FC weight's gradient is formed in this objective's roll-outs (fc_lr "encoder")
+        model.encoder_grad_scale = encoder_grad_scale(model.fc.weight.shape[1], config)
 
     def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1):
         out = self.model(windows, sample=sample, given=given, feedback_grad=self.feedback_grad)
@@ -601,6 +607,12 @@ def fc_lr_factor(fan_in: int, fc_lr: str, reference: int = FC_REFERENCE_FAN_IN) 
     """The factor on the FC weight's learning rate (``fc_lr``: ``fan-in`` or ``none``):
     ``min(1, reference / fan_in)`` with ``fan-in``."""
     return min(1.0, reference / fan_in) if fc_lr == "fan-in" else 1.0
+
+
+def encoder_grad_scale(fan_in: int, config: TrainConfig) -> float:
+    """The factor on the encoder's share of the FC weight's gradient: ``min(1, fc_lr_fan_in /
+    fan_in)`` with ``fc_lr = "encoder"``, else 1."""
+    return fc_lr_factor(fan_in, "fan-in", config.fc_lr_fan_in) if config.fc_lr == "encoder" else 1.0
 
 
 def parameter_groups(model: BDLSTM, config: TrainConfig) -> list[dict]:

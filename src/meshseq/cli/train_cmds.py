@@ -71,10 +71,11 @@ def register(sub) -> None:
     l.add_argument("--step-scale", choices=("none", "data"), default=None,
                    help="none: X' = X + dX (the paper); data: X' = X + s dX with s the RMS frame-to-frame "
                    "change of each channel in the training data")
-    l.add_argument("--fc-lr", choices=("fan-in", "none"), default=None,
-                   help="fan-in: the big FC weight's learning rate times min(1, N / (vertices x 9)) with N "
-                   "from --fc-lr-fan-in, so large meshes train stably (the default recipe); none: one rate "
-                   "for all (the paper)")
+    l.add_argument("--fc-lr", choices=("fan-in", "encoder", "none"), default=None,
+                   help="how the big FC weight learns on large meshes, with f = min(1, N / (vertices x 9)) "
+                   "and N from --fc-lr-fan-in: fan-in: its learning rate times f; encoder: one rate, the "
+                   "encoder's share of its gradient times f (the decoder's untouched); none: one rate for "
+                   "all (the paper)")
     l.add_argument("--fc-lr-fan-in", type=int, default=None, metavar="N",
                    help="with --fc-lr fan-in: the FC fan-in (vertices x 9) at which the FC weight learns at --lr")
     l.add_argument("--kl-scale", choices=("vertices", "none"), default=None,
