@@ -10,7 +10,10 @@ splits the errors into starts that training windows began at and starts they nev
 
 Prints, per run (newest checkpoint or a checkpoint folder) and given count, the mean error
 x 1e-4 (centroid-aligned) of ours, zero velocity and linear ACAP extrapolation over trained and
-untrained starts, and ours over the better baseline. ``--json FILE`` writes every start's figures.
+untrained starts, and ours over the better baseline; and how well the model fits its training
+windows: the forward chain's L_rec (z = mu, the delivered weights, as in training otherwise) over
+zero velocity's on the same windows (1 = no better than standing still, 0 = a perfect fit).
+``--json FILE`` writes every start's figures.
 """
 
 from __future__ import annotations
@@ -57,6 +60,24 @@ def start_errors(model, verts, feats, segment, window: int, given: int, horizons
     return out
 
 
+def training_fit(model, feats, segment, window: int, most: int = 16) -> tuple[float, float]:
+    """``(ours, zero velocity)``: mean forward-chain L_rec (``meshseq.train.window_losses``' sum
+    over vertices and channels, mean over frames 2..n) over up to ``most`` evenly spaced training
+    windows, ours free-running from each window's first frame with ``z = mu``."""
+    import torch
+
+    from meshseq.train import frame_error
+
+    lo, hi = segment
+    starts = np.unique(np.linspace(lo, hi - window, min(most, hi - window - lo + 1)).round().astype(int))
+    w = torch.from_numpy(np.stack([feats[s:s + window] for s in starts]))
+    with torch.no_grad():
+        fwd = model.net(w.to(model.device), sample=False)["forward"].cpu()
+    ours = frame_error(fwd[:, 1:], w[:, 1:]).mean()
+    still = frame_error(w[:, :1].expand_as(w)[:, 1:], w[:, 1:]).mean()
+    return float(ours), float(still)
+
+
 def summarise(rows: list[dict], horizons: list[int]) -> list[str]:
     lines = []
     for label, keep in (("trained starts", True), ("untrained starts", False)):
@@ -91,7 +112,9 @@ def main(argv=None) -> int:
         verts, feats, split, window = run_data(model)
         segment = max(split.train, key=lambda ab: ab[1] - ab[0])
         print(f"{run} (iteration {model.iteration}, window {window}, training frames {segment[0]}:{segment[1]})")
-        report[run] = {}
+        ours, still = training_fit(model, feats, segment, window)
+        report[run] = {"fit": {"ours": ours, "zero_velocity": still}}
+        print(f" training windows' L_rec: ours {ours:.1f}, zero velocity {still:.1f} ({ours / still:.2f})")
         for given in args.given:
             rows = start_errors(model, verts, feats, segment, window, given, args.horizons)
             report[run][str(given)] = rows

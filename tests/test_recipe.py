@@ -272,12 +272,12 @@ def test_fc_learning_rate_scales_with_the_fan_in(monkeypatch):
     seq, _ = limb()
     net = small_model(seq)
     fan_in = net.fc.weight.shape[1]  # vertices x 9, under the reference 9000
-    cfg = TrainConfig(lr=2e-3)
+    cfg = TrainConfig(lr=2e-3, fc_lr="fan-in")
     assert fan_in == seq.n_vertices * 9 < 9000 and T.fc_lr_factor(fan_in, "fan-in") == 1.0 and T.fc_lr_factor(90000, "fan-in") == pytest.approx(0.1)
     assert T.fc_lr_factor(90000, "none") == 1.0
     [one] = T.parameter_groups(net, cfg)  # below the reference: one rate
     assert one["names"] == [n for n, _ in net.named_parameters()] and "lr" not in one
-    rest, fc = T.parameter_groups(net, TrainConfig(lr=2e-3, fc_lr_fan_in=fan_in // 4))  # as if 4x the reference
+    rest, fc = T.parameter_groups(net, TrainConfig(lr=2e-3, fc_lr="fan-in", fc_lr_fan_in=fan_in // 4))  # as if 4x
     assert fc["names"] == ["fc.weight"] and fc["params"][0] is net.fc.weight
     assert fc["lr"] == pytest.approx(2e-3 * (fan_in // 4) / fan_in)
     assert "fc.weight" not in rest["names"] and len(rest["params"]) == len(list(net.parameters())) - 1
@@ -294,31 +294,35 @@ def test_fc_learning_rate_scales_with_the_fan_in(monkeypatch):
     assert TrainConfig.from_dict(stored).fc_lr_fan_in == T.FC_REFERENCE_FAN_IN == 9000
 
 
-def test_two_learning_rates_train_as_set_and_resume_bit_for_bit(tmp_path, monkeypatch):
+@pytest.mark.parametrize("fc_lr", ["fan-in", "encoder"])
+def test_two_learning_rates_train_as_set_and_resume_bit_for_bit(tmp_path, fc_lr):
     import json
-
-    import meshseq.train as T
 
     seq, feats = limb()
     fan_in = seq.n_vertices * 9
     data = training_data(seq, feats)
-    cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=3, log_every=1, lr=1e-3, fc_lr_fan_in=fan_in // 4)
+    cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=3, log_every=1, lr=1e-3, fc_lr_fan_in=fan_in // 4,
+               fc_lr=fc_lr)
     one = train(data, tmp_path / "a", TrainConfig(iterations=6, **cfg), SMALL, progress=False, log=None)
     train(data, tmp_path / "b", TrainConfig(iterations=3, **cfg), SMALL, progress=False, log=None)
     two = train(data, tmp_path / "b", TrainConfig(iterations=6, **cfg), SMALL, resume=True, progress=False, log=None)
     for k, v in one["model"].state_dict().items():
         assert torch.equal(v, two["model"].state_dict()[k]), k
+    plain = train(data, tmp_path / "c", TrainConfig(iterations=6, **(cfg | {"fc_lr": "none"})), SMALL,
+                  progress=False, log=None)
+    torch.manual_seed(0)
+    init = small_model(seq).fc.weight.detach()  # what train() starts from (seed 0)
+    moved = (one["model"].fc.weight.detach() - init).abs().mean()
+    if fc_lr == "encoder":  # one rate: Adam's steps as large, in another direction than the plain gradient's
+        diff = (one["model"].fc.weight - plain["model"].fc.weight).abs().mean()
+        assert float(diff) > 0.01 * float(moved)  # 0 if the option did nothing
+        assert float(moved / (plain["model"].fc.weight.detach() - init).abs().mean()) == pytest.approx(1, abs=0.2)
+        return
     state = json.loads((tmp_path / "a" / "checkpoints" / "00000006" / "state.json").read_text())
     groups = state["optimizer"]["param_groups"]
     assert [g["lr"] for g in groups] == pytest.approx([1e-3, 1e-3 * (fan_in // 4) / fan_in])
     assert groups[1]["params"] == ["fc.weight"]
-    # the FC moved less than under one rate, the rest alike in scale: the rate took effect
-    same = train(data, tmp_path / "c", TrainConfig(iterations=6, **(cfg | {"fc_lr_fan_in": 9000})), SMALL,
-                 progress=False, log=None)
-    torch.manual_seed(0)
-    init = small_model(seq).fc.weight.detach()  # what train() starts from (seed 0)
-    moved = (one["model"].fc.weight.detach() - init).abs().mean()
-    assert float(moved / (same["model"].fc.weight.detach() - init).abs().mean()) < 0.5
+    assert float(moved / (plain["model"].fc.weight.detach() - init).abs().mean()) < 0.5  # the rate took effect
 
 
 def test_a_run_stored_before_fc_lr_existed_resumes_with_one_rate(tmp_path):
@@ -723,8 +727,8 @@ def test_fc_lr_fan_in_option_is_stored_and_sets_the_fc_rate(tmp_path):
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
     fan_in = seq.n_vertices * 9
-    assert main(["train", str(data), "--out", str(tmp_path / "r"), "--fc-lr-fan-in", str(fan_in // 2),
-                 *TINY_CLI]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "r"), "--fc-lr", "fan-in", "--fc-lr-fan-in",
+                 str(fan_in // 2), *TINY_CLI]) == 0
     assert stored_configs(tmp_path / "r")[0]["fc_lr_fan_in"] == fan_in // 2
     state = json.loads(next((tmp_path / "r" / "checkpoints").glob("*/state.json")).read_text())
     lrs = [g["lr"] for g in state["optimizer"]["param_groups"]]
