@@ -342,3 +342,29 @@ def test_jump_report_counts_a_planted_jump_and_rejects_bad_shapes():
             branch_jumps(bad)
     with pytest.raises(MeshseqError):
         feature_jumps(np.zeros((5, 2, 3)))
+
+
+def test_robust_scaling_ignores_a_few_outliers_and_inverts_exactly(tmp_path):
+    """``robust``: the two groups' ranges from the 0.1% / 99.9% quantiles, so 0.05% of outlier
+    values (a few bad vertices) leave the bulk's range as it was; they map outside [-0.95, 0.95]."""
+    from meshseq.acap.scaling import ROBUST_QUANTILE
+
+    rng = np.random.default_rng(7)
+    x = rng.uniform(-1, 1, size=(20, 500, 9))
+    bad = x.copy()
+    bad[:, :5, 3:] *= 20  # 1% of the vertices, in the S group only: 0.5% of its values
+    bad[0, 0, 3] = 400.0
+    two, robust = Scaling.fit(bad, "two-group"), Scaling.fit(bad, "robust")
+    assert two.maximum[3] == 400.0  # min/max: set by one value
+    assert robust.maximum[3] < 30 and robust.minimum[3] > -30
+    clean = Scaling.fit(x, "robust")
+    assert np.allclose(clean.minimum[:3], np.quantile(x[..., :3], ROBUST_QUANTILE))
+    assert np.allclose(clean.maximum[3:], np.quantile(x[..., 3:], 1 - ROBUST_QUANTILE))
+    y = robust.apply(bad)
+    assert y.max() > 0.95 and np.abs(robust.invert(y) - bad).max() < 1e-9
+    inside = np.abs(y[:, 5:, 3:]) <= 0.95  # the bulk of the S group: within the range
+    assert inside.mean() > 0.99
+    path = tmp_path / "robust.json"
+    robust.save(path)
+    loaded = Scaling.load(path)
+    assert loaded.mode == "robust" and np.array_equal(loaded.apply(bad), y)

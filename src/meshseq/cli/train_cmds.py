@@ -105,7 +105,7 @@ def register(sub) -> None:
     d = p.add_argument_group("data")
     d.add_argument("--holdout", type=float, default=0.2, help="fraction of every data set held out (one block)")
     d.add_argument("--holdout-at", default="end", help="where the held-out block starts: start, end or a fraction")
-    d.add_argument("--scaling", choices=("two-group", "per-channel"), default="two-group",
+    d.add_argument("--scaling", choices=("two-group", "per-channel", "robust"), default="two-group",
                    help="feature scaling to [-0.95, 0.95], fitted on the training frames")
     d.add_argument("--consistency", choices=("temporal", "spatial"), default="temporal",
                    help="rotation consistency of the ACAP features")
