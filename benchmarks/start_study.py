@@ -38,7 +38,7 @@ def run_data(model):
     if len(sets) != 1:
         raise SystemExit(f"start_study: one data set per run, this run has {len(sets)}")
     source = sets[0]["source"]
-    feats = load_training_data([source]).features[0]
+    feats = load_training_data([source], consistency=model.meta["train"]["consistency"]).features[0]
     verts = load_sequence(source).vertices.astype(np.float64)
     window = int(model.meta["train"]["window"])
     return verts, model.scaling.apply(feats).astype(np.float32), Split.from_dict(sets[0]["split"]), window

@@ -264,7 +264,7 @@ def test_cli_recipe_sets_the_options_and_flags_override(tmp_path):
     assert train_opts["w_kl"] == 0.1  # the rest from the paper's recipe
 
 
-def test_fc_learning_rate_scales_with_the_fan_in(monkeypatch):
+def test_fc_learning_rate_scales_with_the_fan_in():
     """fc_lr="fan-in": the FC weight's Adam rate is lr * min(1, 9000 / (V * 9)); every other
     parameter keeps lr; "none" (the paper) is one group."""
     import meshseq.train as T

@@ -287,8 +287,7 @@ RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "given", "step_sc
 RECIPES = {
     "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "w_motion": 0.0, "given": 1, "step_scale": "none",
               "input_norm": False, "fc_lr": "none", "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "kl_scale": "none",
-              "logvar_max": None, "grad_clip": None,
-              "ema_decay": None, "mu_max": None, "feedback_grad": "full"},
+              "logvar_max": None, "grad_clip": None, "ema_decay": None, "mu_max": None, "feedback_grad": "full"},
     "default": {name: TrainConfig.__dataclass_fields__[name].default for name in RECIPE_OPTIONS},
 }
 
@@ -615,15 +614,15 @@ def resume_point(run_dir: Path) -> "ckpt.Loaded":
 
 
 def fc_lr_factor(fan_in: int, fc_lr: str, reference: int = FC_REFERENCE_FAN_IN) -> float:
-    """The factor on the FC weight's learning rate (``fc_lr``: ``fan-in`` or ``none``):
-    ``min(1, reference / fan_in)`` with ``fan-in``."""
+    """The factor on the FC weight's learning rate: ``min(1, reference / fan_in)`` with
+    ``fc_lr = "fan-in"``, else 1."""
     return min(1.0, reference / fan_in) if fc_lr == "fan-in" else 1.0
 
 
 def encoder_grad_scale(fan_in: int, config: TrainConfig) -> float:
     """The factor on the encoder's share of the FC weight's gradient: ``min(1, fc_lr_fan_in /
     fan_in)`` with ``fc_lr = "encoder"``, else 1."""
-    return fc_lr_factor(fan_in, "fan-in", config.fc_lr_fan_in) if config.fc_lr == "encoder" else 1.0
+    return min(1.0, config.fc_lr_fan_in / fan_in) if config.fc_lr == "encoder" else 1.0
 
 
 def parameter_groups(model: BDLSTM, config: TrainConfig) -> list[dict]:

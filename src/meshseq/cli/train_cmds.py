@@ -77,7 +77,8 @@ def register(sub) -> None:
                    "encoder's share of its gradient times f (the decoder's untouched); none: one rate for "
                    "all (the paper)")
     l.add_argument("--fc-lr-fan-in", type=int, default=None, metavar="N",
-                   help="with --fc-lr fan-in: the FC fan-in (vertices x 9) at which the FC weight learns at --lr")
+                   help="with --fc-lr fan-in or encoder: the FC fan-in (vertices x 9) from which the rule acts "
+                   "(9000)")
     l.add_argument("--kl-scale", choices=("vertices", "none"), default=None,
                    help="vertices: the weight of L_KL times vertices / 1000, so its balance with the "
                    "per-vertex sums of L_rec does not depend on the mesh size (the default recipe); "
