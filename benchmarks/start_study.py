@@ -6,7 +6,8 @@ every chain the model ever learned from began at frame 0. This study predicts fr
 ``s`` inside the training part (training frames only: the held-out block is never read) and
 splits the errors into starts that training windows began at and starts they never began at.
 
-    python benchmarks/start_study.py RUN [RUN ...] --given 1 3 --horizons 10 15
+    python benchmarks/start_study.py RUN [RUN ...] --given 1 3 --horizons 10 15 --json FILE
+    python benchmarks/start_study.py RUN=LABEL ... --plot FILE [FILE ...] -o CURVES.png
 
 Prints, per run (newest checkpoint or a checkpoint folder) and given count, the mean error
 x 1e-4 (centroid-aligned) of ours, zero velocity and linear ACAP extrapolation over trained and
@@ -96,13 +97,65 @@ def summarise(rows: list[dict], horizons: list[int]) -> list[str]:
     return lines
 
 
+def untrained_ratios(report: dict, horizons=("10", "15")) -> dict:
+    """``{run: {iteration: {"u1 h10": ratio, ...}}}`` from ``--json`` reports: ours over the better
+    baseline, mean over the untrained starts (the held-out protocol's kind of start)."""
+    out: dict = {}
+    for path, figures in report.items():
+        folder = Path(path)
+        run, iteration = (folder.parent.parent.name, int(folder.name)) if folder.parent.name == "checkpoints" \
+            else (folder.name, -1)
+        cells = {}
+        for given in [k for k in figures if k != "fit"]:
+            part = [r for r in figures[given] if not r["trained"]]
+            for h in horizons:
+                mean = {m: float(np.mean([r[m][h] for r in part])) for m in METHODS}
+                cells[f"u{given} h{h}"] = mean["ours"] / min(mean["zero_velocity"], mean["linear_acap"])
+        out.setdefault(run, {})[iteration] = cells
+    return out
+
+
+def plot(files: list[str], output: str, labels: dict[str, str]) -> None:
+    """One panel per (given, horizon): ratio over untrained starts against the iteration, a line a run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ratios: dict = {}
+    for f in files:
+        for run, points in untrained_ratios(json.loads(Path(f).read_text())).items():
+            ratios.setdefault(run, {}).update(points)
+    cells = sorted({c for points in ratios.values() for p in points.values() for c in p})
+    fig, axes = plt.subplots(1, len(cells), figsize=(3.4 * len(cells), 3.2), squeeze=False)
+    for ax, cell in zip(axes[0], cells):
+        for run, points in sorted(ratios.items()):
+            its = sorted(points)
+            ax.plot(its, [points[i][cell] for i in its], marker="o", label=labels.get(run, run))
+        ax.axhline(1.0, color="gray", lw=0.8, ls="--")
+        ax.set_title(f"{cell}, untrained starts")
+        ax.set_xlabel("iteration")
+    axes[0][0].set_ylabel("ours / best baseline")
+    axes[0][-1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(output, dpi=110)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", help="run folders (newest checkpoint) or checkpoint folders")
     ap.add_argument("--given", type=int, nargs="+", default=[1, 3])
     ap.add_argument("--horizons", type=int, nargs="+", default=[10, 15])
     ap.add_argument("--json", help="write every start's figures here")
+    ap.add_argument("--plot", nargs="+", metavar="JSON", help="plot these --json reports instead (runs: the "
+                    "positional arguments as RUN=LABEL, optional) to -o PNG")
+    ap.add_argument("-o", "--output", help="PNG for --plot")
     args = ap.parse_args(argv)
+    if args.plot:
+        if not args.output:
+            ap.error("--plot needs -o PNG")
+        plot(args.plot, args.output, dict(r.split("=", 1) for r in args.runs if "=" in r))
+        return 0
 
     import meshseq
 

@@ -107,7 +107,7 @@ def check(value, spec, file, field: str = "") -> None:
 # model.json
 
 #: options added after format version 1 was first written: optional (the dataclass default)
-ADDED_LATER = {"given", "step_scale", "input_norm", "sample", "precision"}  # and train.LEGACY_TRAIN_DEFAULTS
+ADDED_LATER = {"given", "step_scale", "input_norm", "sample", "precision", "vertex_frames"}  # and train.LEGACY_TRAIN_DEFAULTS
 _ANNOTATIONS = {"int": int, "float": float, "str": str, "bool": bool, "list[float] | None": ([float], None),
                 "float | None": (float, None)}
 

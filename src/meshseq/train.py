@@ -63,7 +63,7 @@ from meshseq.mesh import Topology, topology_hash
 from meshseq.model import BDLSTM, ModelConfig, is_finite_number
 
 PRECISIONS = ("float32", "bf16")
-METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "motion", "latent_spread",
+METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "motion", "vertex", "latent_spread",
                  "latent_rms", "latent_sigma", "grad_norm", "clipped", "heldout_rec", "heldout_bd")
 
 
@@ -100,7 +100,7 @@ EMA_WARMUP = 10
 LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "logvar_max": None,
                          "grad_clip": None, "adam_beta2": 0.999, "ema_decay": None,
                          "mu_max": None, "feedback_grad": "full",
-                         "fc_lr_fan_in": FC_REFERENCE_FAN_IN}
+                         "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0}
 
 @dataclass
 class TrainConfig:
@@ -118,6 +118,8 @@ class TrainConfig:
     w_kl: float = 0.1
     w_l2: float = 0.0  # the default recipe (RECIPES, below); the paper: 0.1
     w_motion: float = 10.0  # the default recipe (RECIPES); the paper has no such term (0)
+    w_vertex: float = 0.0  # L_vertex (meshseq.vertex_loss): off in both recipes until measured
+    vertex_frames: int = 4  # frames of each chain that L_vertex reconstructs (meshseq.vertex_loss)
     holdout: float = 0.2
     holdout_at: str = "end"
     scaling: str = "two-group"
@@ -150,9 +152,12 @@ class TrainConfig:
         for name in ("eval_every", "checkpoint_every", "log_every"):
             if int(getattr(self, name)) < 0:
                 raise MeshseqError(f"--{name.replace('_', '-')} {getattr(self, name)}: expected >= 0")
-        for name in ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion"):
+        for name in ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "w_vertex"):
             if not float(getattr(self, name)) >= 0:
                 raise MeshseqError(f"loss weight {name}={getattr(self, name)} must be >= 0")
+        if isinstance(self.vertex_frames, bool) or int(self.vertex_frames) != self.vertex_frames \
+                or int(self.vertex_frames) < 1:
+            raise MeshseqError(f"--vertex-frames {self.vertex_frames!r}: expected a positive integer")
         if not float(self.lr) > 0:
             raise MeshseqError(f"--lr {self.lr}: expected a positive number")
         if not (is_finite_number(self.adam_beta2) and 0 <= self.adam_beta2 < 1):
@@ -282,11 +287,11 @@ class TrainConfig:
 #:   two seeds), worse only at 150 of seed 1 (warm-up); motion 0.75-0.95 of the truth's. It does not
 #:   remove horse-gallop's spikes: at their peak the average is 2-10 x better, during recovery it
 #:   lags (docs/recipe_study.md "A moving average of the weights").
-RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "given", "step_scale", "input_norm", "fc_lr", "fc_lr_fan_in",
+RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "w_vertex", "given", "step_scale", "input_norm", "fc_lr", "fc_lr_fan_in",
                   "kl_scale", "logvar_max", "mu_max", "grad_clip", "ema_decay", "feedback_grad")
 RECIPES = {
-    "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "w_motion": 0.0, "given": 1, "step_scale": "none",
-              "input_norm": False, "fc_lr": "none", "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "kl_scale": "none",
+    "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "w_motion": 0.0, "w_vertex": 0.0, "given": 1,
+              "step_scale": "none", "input_norm": False, "fc_lr": "none", "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "kl_scale": "none",
               "logvar_max": None, "grad_clip": None, "ema_decay": None, "mu_max": None, "feedback_grad": "full"},
     "default": {name: TrainConfig.__dataclass_fields__[name].default for name in RECIPE_OPTIONS},
 }
@@ -376,11 +381,15 @@ class WindowLoss(nn.Module):
     weighted loss; terms are detached scalars for logging.
     """
 
-    def __init__(self, model: BDLSTM, config: TrainConfig):
+    def __init__(self, model: BDLSTM, config: TrainConfig, vertex_loss: nn.Module | None = None):
         super().__init__()
         self.model = model
         self.weights = {"rec": config.w_rec, "bd": config.w_bd, "l2": config.w_l2, "motion": config.w_motion,
-                        "kl": kl_weight(config.w_kl, model.config.n_vertices, config.kl_scale)}
+                        "kl": kl_weight(config.w_kl, model.config.n_vertices, config.kl_scale),
+                        "vertex": config.w_vertex}
+        if config.w_vertex > 0 and vertex_loss is None:
+            raise ValueError("w_vertex > 0 needs a VertexLoss (meshseq.vertex_loss)")
+        self.vertex_loss = vertex_loss if config.w_vertex > 0 else None
         self.feedback_grad = config.feedback_grad == "full"
         # how the tied FC weight's gradient is formed in this objective's roll-outs (fc_lr "encoder")
         model.encoder_grad_scale = encoder_grad_scale(model.fc.weight.shape[1], config)
@@ -390,6 +399,10 @@ class WindowLoss(nn.Module):
         terms = window_losses(out, windows)
         if self.weights["motion"] > 0:
             terms["motion"] = motion_loss(out, windows)
+        if self.vertex_loss is not None:
+            terms["vertex"] = self.vertex_loss(out["forward"], windows)
+            if out["backward"] is not None:
+                terms["vertex"] = terms["vertex"] + self.vertex_loss(out["backward"], windows.flip(1))
         terms["l2"] = sum(p.square().sum() for p in self.model.weight_parameters())
         total = sum(self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) != 0)
         return total, {k: v.detach() for k, v in terms.items()}
@@ -617,6 +630,22 @@ def fc_lr_factor(fan_in: int, fc_lr: str, reference: int = FC_REFERENCE_FAN_IN) 
     """The factor on the FC weight's learning rate: ``min(1, reference / fan_in)`` with
     ``fc_lr = "fan-in"``, else 1."""
     return min(1.0, reference / fan_in) if fc_lr == "fan-in" else 1.0
+
+
+def make_vertex_loss(data: TrainingData, scaled: list[np.ndarray], splits: list[Split], scaling,
+                     config: TrainConfig, device: torch.device):
+    """The ``VertexLoss`` of a run (None when ``w_vertex`` is 0): the training reference's torch
+    reconstruction and the unit calibrated on the training frames (``meshseq.vertex_loss``)."""
+    if config.w_vertex <= 0:
+        return None
+    from meshseq.acap import Reconstructor
+    from meshseq.acap.torch_reconstruct import TorchReconstructor
+    from meshseq.vertex_loss import VertexLoss, vertex_unit
+
+    rec = Reconstructor(data.reference, data.faces)
+    verts = [(v := rec.solve(f)) - v.mean(axis=1, keepdims=True) for f in data.features]  # centred, as P
+    unit = vertex_unit(scaled, verts, [s.train for s in splits])
+    return VertexLoss(TorchReconstructor(rec, device=device), scaling, unit, config.vertex_frames)
 
 
 def encoder_grad_scale(fan_in: int, config: TrainConfig) -> float:
@@ -853,7 +882,7 @@ def train(
         # different sampling noise per rank (the windows stay common)
         torch.manual_seed(config.seed + 7919 * dist_info.rank + start)
 
-    objective = WindowLoss(model, config)
+    objective = WindowLoss(model, config, make_vertex_loss(data, scaled, splits, scaling, config, dev))
     if dist_info.active:
         objective = nn.parallel.DistributedDataParallel(
             objective,
@@ -926,7 +955,7 @@ def train(
     t0 = time.perf_counter()
     collapse_warned = False
     clipped = 0  # iterations whose gradient was clipped since the last metrics row
-    checked = [k for k in ("rec", "bd", "kl", "l2", "motion") if getattr(config, f"w_{k}") != 0]
+    checked = [k for k in ("rec", "bd", "kl", "l2", "motion", "vertex") if getattr(config, f"w_{k}") != 0]
     checked_names = [f"the loss term {k}" for k in checked] + ["the total loss", "the gradient norm"]
     try:
         if bar is not None:

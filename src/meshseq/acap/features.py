@@ -154,7 +154,9 @@ def features_to_gradients(features):
         import torch
 
         q, xp = features, torch
-    a, b, c = q[..., 0], q[..., 1], q[..., 2]
+    # one unbind, not nine slices: under autograd each slice's backward fills a zero tensor of q's size
+    cols = tuple(np.moveaxis(q, -1, 0)) if xp is np else q.unbind(-1)
+    a, b, c = cols[:3]
     aa, bb, cc = a * a, b * b, c * c
     t2 = aa + bb + cc
     small = t2 < 1e-12
@@ -166,7 +168,7 @@ def features_to_gradients(features):
     r00, r11, r22 = 1.0 - s2 * (aa + bb), 1.0 - s2 * (aa + cc), 1.0 - s2 * (bb + cc)
     sa, sb, sc = s1 * a, s1 * b, s1 * c
     R = ((r00, sa - bc, sb + ac), (-sa - bc, r11, sc - ab), (-sb + ac, -sc - ab, r22))
-    s00, s01, s02, s11, s12, s22 = (q[..., k] for k in range(3, 9))
+    s00, s01, s02, s11, s12, s22 = cols[3:9]
     S = ((s00, s01, s02), (s01, s11, s12), (s02, s12, s22))
     rows = [
         xp.stack([R[i][0] * S[0][j] + R[i][1] * S[1][j] + R[i][2] * S[2][j] for j in range(3)], -1)

@@ -63,6 +63,12 @@ def register(sub) -> None:
     l.add_argument("--w-motion", type=float, default=None,
                    help="weight of L_motion (generated frame-to-frame change vs the truth's, in size; "
                    "not in the paper: 0 in its recipe, 10 in the default one)")
+    l.add_argument("--w-vertex", type=float, default=None,
+                   help="weight of L_vertex (generated frames reconstructed to vertices against the truth's, "
+                   "in the feature loss's units; not in the paper: 0 in both recipes)")
+    l.add_argument("--vertex-frames", type=int, default=4, metavar="N",
+                   help="with --w-vertex: frames of each chain that L_vertex reconstructs, evenly spaced, "
+                   "the last always (each costs a sparse solve per iteration)")
     l.add_argument("--given", type=int, default=None, help="teacher-forced first frames per chain: "
                    "each iteration draws 1..GIVEN (1 = the paper's free-running chains)")
     l.add_argument("--input-norm", action=argparse.BooleanOptionalAction, default=None,
@@ -162,7 +168,7 @@ def _train(args) -> int:
         lr=args.lr, adam_beta2=args.adam_beta2, holdout=args.holdout, holdout_at=args.holdout_at,
         scaling=args.scaling, consistency=args.consistency, eval_every=args.eval_every,
         checkpoint_every=args.checkpoint_every, log_every=args.log_every, keep=args.keep,
-        precision=args.precision, **recipe,
+        precision=args.precision, vertex_frames=args.vertex_frames, **recipe,
     )
     if args.threads is not None:
         if args.threads < 1:
