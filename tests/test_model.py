@@ -261,7 +261,7 @@ def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch):
         for p in m.parameters():
             p.add_(0.05 * torch.randn_like(p))  # non-zero biases too
     w = torch.randn(3, 6, limb.n_vertices, 9) * 0.3
-    objective = WindowLoss(m, TrainConfig())
+    objective = WindowLoss(m, TrainConfig(w_vertex=0.0))
 
     def run():
         m.zero_grad()
@@ -311,7 +311,7 @@ def test_feedback_grad_stop_treats_fed_back_frames_as_constants(limb, monkeypatc
     def run(feedback_grad):
         m.zero_grad()
         torch.manual_seed(1)
-        total, _ = WindowLoss(m, TrainConfig(feedback_grad=feedback_grad))(w)
+        total, _ = WindowLoss(m, TrainConfig(feedback_grad=feedback_grad, w_vertex=0.0))(w)
         total.backward()
         return total.detach(), {n: p.grad.clone() for n, p in m.named_parameters()}
 

@@ -367,16 +367,16 @@ def test_motion_loss_measures_the_size_of_each_generated_change_against_the_trut
 
 
 def test_w_motion_adds_the_term_off_in_the_paper_recipe_on_in_the_default():
-    assert RECIPES["paper"]["w_motion"] == 0.0 and RECIPES["default"]["w_motion"] == 10.0
+    assert RECIPES["paper"]["w_motion"] == 0.0 and RECIPES["default"]["w_motion"] == 20.0
     assert TrainConfig.from_dict({}).w_motion == 0.0  # runs stored before the term resume without it
     seq, feats = limb()
     model = small_model(seq)
     windows = torch.as_tensor(feats[None, :8] / np.abs(feats).max() * 0.9, dtype=torch.float32)
     cfg = dict(window=8, holdout=0.2)
     torch.manual_seed(1)
-    total_off, terms_off = WindowLoss(model, TrainConfig(w_motion=0.0, **cfg))(windows, sample=False)
+    total_off, terms_off = WindowLoss(model, TrainConfig(w_motion=0.0, w_vertex=0.0, **cfg))(windows, sample=False)
     torch.manual_seed(1)
-    total_on, terms_on = WindowLoss(model, TrainConfig(w_motion=2.0, **cfg))(windows, sample=False)
+    total_on, terms_on = WindowLoss(model, TrainConfig(w_motion=2.0, w_vertex=0.0, **cfg))(windows, sample=False)
     assert "motion" not in terms_off and terms_on["motion"] > 0
     assert torch.isclose(total_on, total_off + 2.0 * terms_on["motion"])
     with pytest.raises(MeshseqError, match="w_motion"):
@@ -399,9 +399,9 @@ def test_kl_weight_scales_with_the_vertices_in_the_default_recipe_only():
     windows = torch.as_tensor(feats[None, :8] / np.abs(feats).max() * 0.9, dtype=torch.float32)
     cfg = dict(window=8, w_motion=0.0)
     torch.manual_seed(1)
-    base, terms = WindowLoss(model, TrainConfig(kl_scale="none", **cfg))(windows, sample=False)
+    base, terms = WindowLoss(model, TrainConfig(kl_scale="none", w_vertex=0.0, **cfg))(windows, sample=False)
     torch.manual_seed(1)
-    scaled, _ = WindowLoss(model, TrainConfig(kl_scale="vertices", **cfg))(windows, sample=False)
+    scaled, _ = WindowLoss(model, TrainConfig(kl_scale="vertices", w_vertex=0.0, **cfg))(windows, sample=False)
     factor = seq.n_vertices / T.KL_REFERENCE_VERTICES
     assert terms["kl"] > 0 and factor != 1.0
     assert torch.isclose(scaled, base + 0.1 * (factor - 1.0) * terms["kl"], rtol=1e-5)
@@ -752,7 +752,7 @@ def test_fc_lr_encoder_scales_only_the_encoders_share_of_the_fc_gradient(given, 
 
     def grads(**option):
         net.zero_grad()
-        total, _ = T.WindowLoss(net, TrainConfig(**option))(windows, sample=False, given=given)
+        total, _ = T.WindowLoss(net, TrainConfig(w_vertex=0.0, **option))(windows, sample=False, given=given)
         total.backward()
         return float(total.detach()), {n: p.grad.clone() for n, p in net.named_parameters()}
 

@@ -80,7 +80,9 @@ class VertexLoss(nn.Module):
 
     def forward(self, generated: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
         pick = picked_frames(generated.shape[1], self.frames)
-        with torch.no_grad():
-            target = self._vertices(truth[:, pick].float())
-        ours = self._vertices(generated[:, pick].float())
-        return self.unit * (ours - target).square().sum((-2, -1)).mean()
+        # in float32 whatever the training precision: the solver takes float32 only
+        with torch.autocast(generated.device.type, enabled=False):
+            with torch.no_grad():
+                target = self._vertices(truth[:, pick].float())
+            ours = self._vertices(generated[:, pick].float())
+            return self.unit * (ours - target).square().sum((-2, -1)).mean()

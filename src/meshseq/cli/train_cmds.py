@@ -62,10 +62,10 @@ def register(sub) -> None:
     l.add_argument("--w-l2", type=float, default=None, help="weight of L_2 (sum of squared weights)")
     l.add_argument("--w-motion", type=float, default=None,
                    help="weight of L_motion (generated frame-to-frame change vs the truth's, in size; "
-                   "not in the paper: 0 in its recipe, 10 in the default one)")
+                   "not in the paper: 0 in its recipe, 20 in the default one)")
     l.add_argument("--w-vertex", type=float, default=None,
                    help="weight of L_vertex (generated frames reconstructed to vertices against the truth's, "
-                   "in the feature loss's units; not in the paper: 0 in both recipes)")
+                   "in the feature loss's units; not in the paper: 0 in its recipe, 1 in the default one)")
     l.add_argument("--vertex-frames", type=int, default=4, metavar="N",
                    help="with --w-vertex: frames of each chain that L_vertex reconstructs, evenly spaced, "
                    "the last always (each costs a sparse solve per iteration)")
