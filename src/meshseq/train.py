@@ -301,12 +301,13 @@ class TrainConfig:
 #:   two seeds), worse only at 150 of seed 1 (warm-up); motion 0.75-0.95 of the truth's. It does not
 #:   remove horse-gallop's spikes: at their peak the average is 2-10 x better, during recovery it
 #:   lags (docs/recipe_study.md "A moving average of the weights").
-RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "w_vertex", "given", "step_scale", "input_norm", "fc_lr", "fc_lr_fan_in",
-                  "kl_scale", "logvar_max", "mu_max", "grad_clip", "ema_decay", "feedback_grad")
+RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "w_vertex", "given", "step_scale", "input_norm", "fc_lr",
+                  "fc_lr_fan_in", "kl_scale", "logvar_max", "mu_max", "grad_clip", "ema_decay", "feedback_grad")
 RECIPES = {
     "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "w_motion": 0.0, "w_vertex": 0.0, "given": 1,
-              "step_scale": "none", "input_norm": False, "fc_lr": "none", "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "kl_scale": "none",
-              "logvar_max": None, "grad_clip": None, "ema_decay": None, "mu_max": None, "feedback_grad": "full"},
+              "step_scale": "none", "input_norm": False, "fc_lr": "none", "fc_lr_fan_in": FC_REFERENCE_FAN_IN,
+              "kl_scale": "none", "logvar_max": None, "grad_clip": None, "ema_decay": None, "mu_max": None,
+              "feedback_grad": "full"},
     "default": {name: TrainConfig.__dataclass_fields__[name].default for name in RECIPE_OPTIONS},
 }
 
