@@ -257,8 +257,8 @@ class TrainConfig:
 #:   horse-gallop, 300 iterations, ours over the best baseline from the untrained starts of its
 #:   training frames (u1 h10 / h15, u3 h10 / h15): 1.15 / 0.76 / 1.17 / 0.67 against 1.31 / 0.95 /
 #:   1.47 / 1.05 (with w_motion 10: 0.94 / 0.70 / 1.03 / 0.57). crane validation blocks, 400
-#:   iterations, with w_motion 10 (20 not run there): 3300 / 3385 / 2046 against 3505 / 3618 /
-#:   2050. Cost: +13% per iteration on the body set, about +15% on horse.
+#:   iterations: 3509 / 3663 / 2106 against 3505 / 3618 / 2050, motion 0.69 against 0.63 (with
+#:   w_motion 10: 3300 / 3385 / 2046). Cost: +13% per iteration on the body set, ~+15% on horse.
 #:
 #: Two guards for meshes larger than the body set, where the four choices above ran away on
 #: horse-gallop (8,431 vertices: iteration 822 in one run, a KL of 5,388 nats at iteration 160 in
