@@ -79,6 +79,13 @@ def training_fit(model, feats, segment, window: int, most: int = 16) -> tuple[fl
     return float(ours), float(still)
 
 
+def mean_errors(part: list[dict], horizon) -> tuple[dict, float]:
+    """Mean error of each method over the starts ``part`` at ``horizon``, and ours over the better
+    baseline (zero velocity or linear ACAP)."""
+    mean = {m: float(np.mean([r[m][str(horizon)] for r in part])) for m in METHODS}
+    return mean, mean["ours"] / min(mean["zero_velocity"], mean["linear_acap"])
+
+
 def summarise(rows: list[dict], horizons: list[int]) -> list[str]:
     lines = []
     for label, keep in (("trained starts", True), ("untrained starts", False)):
@@ -88,10 +95,9 @@ def summarise(rows: list[dict], horizons: list[int]) -> list[str]:
             continue
         cells = []
         for h in horizons:
-            mean = {m: float(np.mean([r[m][str(h)] for r in part])) for m in METHODS}
-            best = min(mean["zero_velocity"], mean["linear_acap"])
+            mean, ratio = mean_errors(part, h)
             cells.append(f"h{h}: ours {mean['ours']:.1f} zero {mean['zero_velocity']:.1f} "
-                         f"linear {mean['linear_acap']:.1f} ratio {mean['ours'] / best:.2f}")
+                         f"linear {mean['linear_acap']:.1f} ratio {ratio:.2f}")
         starts = [r["start"] for r in part]
         lines.append(f"  {label} ({len(part)}: {min(starts)}..{max(starts)}): " + "; ".join(cells))
     return lines
@@ -109,8 +115,7 @@ def untrained_ratios(report: dict, horizons=("10", "15")) -> dict:
         for given in [k for k in figures if k != "fit"]:
             part = [r for r in figures[given] if not r["trained"]]
             for h in horizons:
-                mean = {m: float(np.mean([r[m][h] for r in part])) for m in METHODS}
-                cells[f"u{given} h{h}"] = mean["ours"] / min(mean["zero_velocity"], mean["linear_acap"])
+                cells[f"u{given} h{h}"] = mean_errors(part, h)[1]
         out.setdefault(run, {})[iteration] = cells
     return out
 

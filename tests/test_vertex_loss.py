@@ -94,8 +94,9 @@ def test_w_vertex_adds_the_term_to_the_objective(limb):
         WindowLoss(model, TrainConfig(w_vertex=1.0, **cfg))
     with pytest.raises(MeshseqError, match="w_vertex"):
         TrainConfig(w_vertex=-1.0)
-    with pytest.raises(MeshseqError, match="--vertex-frames"):
-        TrainConfig(vertex_frames=0)
+    for bad in (0, 4.0, True):  # a float would be stored where checkpoints expect an integer
+        with pytest.raises(MeshseqError, match="--vertex-frames"):
+            TrainConfig(vertex_frames=bad)
 
 
 def test_training_with_w_vertex_logs_it_and_resumes_bit_for_bit(limb, tmp_path):

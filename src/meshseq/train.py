@@ -102,6 +102,11 @@ LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "
                          "mu_max": None, "feedback_grad": "full",
                          "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0}
 
+def is_positive_integer(x) -> bool:
+    """An int (numpy integers too) >= 1, not a bool and not a float: what a count option may hold."""
+    return isinstance(x, (int, np.integer)) and not isinstance(x, bool) and x >= 1
+
+
 @dataclass
 class TrainConfig:
     """Training options; stored in every checkpoint's JSON."""
@@ -155,8 +160,7 @@ class TrainConfig:
         for name in ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "w_vertex"):
             if not float(getattr(self, name)) >= 0:
                 raise MeshseqError(f"loss weight {name}={getattr(self, name)} must be >= 0")
-        if isinstance(self.vertex_frames, bool) or int(self.vertex_frames) != self.vertex_frames \
-                or int(self.vertex_frames) < 1:
+        if not is_positive_integer(self.vertex_frames):
             raise MeshseqError(f"--vertex-frames {self.vertex_frames!r}: expected a positive integer")
         if not float(self.lr) > 0:
             raise MeshseqError(f"--lr {self.lr}: expected a positive number")
@@ -168,8 +172,7 @@ class TrainConfig:
             raise MeshseqError(f"--step-scale {self.step_scale!r}: expected one of {', '.join(STEP_SCALES)}")
         if self.fc_lr not in FC_LRS:
             raise MeshseqError(f"--fc-lr {self.fc_lr!r}: expected one of {', '.join(FC_LRS)}")
-        if isinstance(self.fc_lr_fan_in, bool) or not isinstance(self.fc_lr_fan_in, (int, np.integer)) \
-                or self.fc_lr_fan_in < 1:
+        if not is_positive_integer(self.fc_lr_fan_in):
             raise MeshseqError(f"--fc-lr-fan-in {self.fc_lr_fan_in!r}: expected a positive integer")
         if self.logvar_max is not None and not is_finite_number(self.logvar_max):
             raise MeshseqError(f"--logvar-max {self.logvar_max!r}: expected a number")
@@ -658,7 +661,7 @@ def make_vertex_loss(data: TrainingData, scaled: list[np.ndarray], splits: list[
     from meshseq.vertex_loss import VertexLoss, vertex_unit
 
     rec = Reconstructor(data.reference, data.faces)
-    verts = [(v := rec.solve(f)) - v.mean(axis=1, keepdims=True) for f in data.features]  # centred, as P
+    verts = [rec.solve(f) for f in data.features]  # centred (align.place), as P
     unit = vertex_unit(scaled, verts, [s.train for s in splits])
     return VertexLoss(TorchReconstructor(rec, device=device), scaling, unit, config.vertex_frames)
 
