@@ -86,10 +86,13 @@ def mean_errors(part: list[dict], horizon) -> tuple[dict, float]:
     return mean, mean["ours"] / min(mean["zero_velocity"], mean["linear_acap"])
 
 
-def summarise(rows: list[dict], horizons: list[int]) -> list[str]:
+def summarise(rows: list[dict], horizons: list[int], min_start: int | None = None) -> list[str]:
     lines = []
-    for label, keep in (("trained starts", True), ("untrained starts", False)):
-        part = [r for r in rows if r["trained"] == keep]
+    groups = [("trained starts", lambda r: r["trained"]), ("untrained starts", lambda r: not r["trained"])]
+    if min_start is not None:
+        groups.append((f"starts >= {min_start}", lambda r: r["start"] >= min_start))
+    for label, keep in groups:
+        part = [r for r in rows if keep(r)]
         if not part:
             lines.append(f"  {label}: none")
             continue
@@ -103,9 +106,10 @@ def summarise(rows: list[dict], horizons: list[int]) -> list[str]:
     return lines
 
 
-def untrained_ratios(report: dict, horizons=("10", "15")) -> dict:
+def untrained_ratios(report: dict, horizons=("10", "15"), min_start: int | None = None) -> dict:
     """``{run: {iteration: {"u1 h10": ratio, ...}}}`` from ``--json`` reports: ours over the better
-    baseline, mean over the untrained starts (the held-out protocol's kind of start)."""
+    baseline, mean over the untrained starts (the held-out protocol's kind of start), or over the
+    starts from ``min_start`` on (to compare runs whose windows began at different starts)."""
     out: dict = {}
     for path, figures in report.items():
         folder = Path(path)
@@ -113,15 +117,17 @@ def untrained_ratios(report: dict, horizons=("10", "15")) -> dict:
             else (folder.name, -1)
         cells = {}
         for given in [k for k in figures if k != "fit"]:
-            part = [r for r in figures[given] if not r["trained"]]
+            part = [r for r in figures[given]
+                    if (not r["trained"] if min_start is None else r["start"] >= min_start)]
             for h in horizons:
                 cells[f"u{given} h{h}"] = mean_errors(part, h)[1]
         out.setdefault(run, {})[iteration] = cells
     return out
 
 
-def plot(files: list[str], output: str, labels: dict[str, str]) -> None:
-    """One panel per (given, horizon): ratio over untrained starts against the iteration, a line a run."""
+def plot(files: list[str], output: str, labels: dict[str, str], min_start: int | None = None) -> None:
+    """One panel per (given, horizon): ratio over untrained starts (or starts >= ``min_start``)
+    against the iteration, a line a run."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -129,7 +135,7 @@ def plot(files: list[str], output: str, labels: dict[str, str]) -> None:
 
     ratios: dict = {}
     for f in files:
-        for run, points in untrained_ratios(json.loads(Path(f).read_text())).items():
+        for run, points in untrained_ratios(json.loads(Path(f).read_text()), min_start=min_start).items():
             ratios.setdefault(run, {}).update(points)
     cells = sorted({c for points in ratios.values() for p in points.values() for c in p})
     fig, axes = plt.subplots(1, len(cells), figsize=(3.4 * len(cells), 3.2), squeeze=False)
@@ -138,7 +144,7 @@ def plot(files: list[str], output: str, labels: dict[str, str]) -> None:
             its = sorted(points)
             ax.plot(its, [points[i][cell] for i in its], marker="o", label=labels.get(run, run))
         ax.axhline(1.0, color="gray", lw=0.8, ls="--")
-        ax.set_title(f"{cell}, untrained starts")
+        ax.set_title(f"{cell}, " + ("untrained starts" if min_start is None else f"starts >= {min_start}"))
         ax.set_xlabel("iteration")
     axes[0][0].set_ylabel("ours / best baseline")
     axes[0][-1].legend(fontsize=7)
@@ -155,11 +161,13 @@ def main(argv=None) -> int:
     ap.add_argument("--plot", nargs="+", metavar="JSON", help="plot these --json reports instead (runs: the "
                     "positional arguments as RUN=LABEL, optional) to -o PNG")
     ap.add_argument("-o", "--output", help="PNG for --plot")
+    ap.add_argument("--min-start", type=int, help="also average over the starts from this frame on (e.g. "
+                    "those that no run's windows began at, when runs differ in --window); --plot: only those")
     args = ap.parse_args(argv)
     if args.plot:
         if not args.output:
             ap.error("--plot needs -o PNG")
-        plot(args.plot, args.output, dict(r.split("=", 1) for r in args.runs if "=" in r))
+        plot(args.plot, args.output, dict(r.split("=", 1) for r in args.runs if "=" in r), args.min_start)
         return 0
 
     import meshseq
@@ -177,7 +185,7 @@ def main(argv=None) -> int:
             rows = start_errors(model, verts, feats, segment, window, given, args.horizons)
             report[run][str(given)] = rows
             print(f" u = {given}")
-            print("\n".join(summarise(rows, args.horizons)))
+            print("\n".join(summarise(rows, args.horizons, args.min_start)))
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1))
     return 0

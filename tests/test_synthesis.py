@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+import torch
 
 from meshseq import baselines
 from meshseq.align import per_vertex_error
@@ -157,6 +158,48 @@ def test_baselines():
     assert np.array_equal(baselines.linear_acap(given[:, :1], 4), baselines.zero_velocity(given[:, :1], 4))
     li = baselines.linear_interpolation(given[0, 0], given[0, 1], 3)
     assert li.shape == (5, 5, 9) and np.allclose(li[2], (given[0, 0] + given[0, 1]) / 2)
+
+
+@pytest.mark.parametrize("subdivisions", [2, 4])
+def test_vae_fc_learns_at_the_fan_in_rate_on_large_meshes(subdivisions):
+    """The VAE baseline's big FC weight learns at lr x min(1, 9000 / (V x 9)) (horse-gallop's ran
+    away at one rate for all weights); everything else at lr."""
+    from meshseq.data.synthetic import icosphere
+    from meshseq.mesh import Topology
+    from meshseq.model import ModelConfig
+
+    verts, faces = icosphere(subdivisions)
+    vae = baselines.MeshVAE(ModelConfig(n_vertices=len(verts), channels=9, latent=8, lstm_layers=1, variant="uni"),
+                            Topology.from_faces(faces, len(verts)))
+    groups = baselines.vae_param_groups(vae, 1e-3)
+    fc = [g for g in groups if any(p is vae.net.fc.weight for p in g["params"])]
+    assert len(fc) == 1 and fc[0]["params"] == [vae.net.fc.weight]
+    assert fc[0]["lr"] == pytest.approx(1e-3 * min(1.0, 9000 / (len(verts) * 9)))
+    assert (fc[0]["lr"] < 1e-3) == (len(verts) * 9 > 9000)
+    rest = [p for g in groups if g is not fc[0] for p in g["params"]]
+    assert {id(p) for p in rest} | {id(vae.net.fc.weight)} == {id(p) for p in vae.parameters()}
+    assert all(g["lr"] == 1e-3 for g in groups if g is not fc[0])
+
+
+def test_vae_baseline_cache_is_reused_and_one_from_the_old_fc_rule_retrained(model, trained, tmp_path):
+    import shutil
+
+    from meshseq.cli.synth_cmds import _vae
+
+    run = tmp_path / "run"
+    shutil.copytree(trained[0], run)
+    seq = trained[2]
+    feats = model.features(seq.vertices)
+    first = _vae(model, str(run), seq, feats, (58, 72), 3)
+    meta = json.loads((run / "baselines" / "vae" / "vae.json").read_text())
+    assert meta["fc_lr"] == baselines.VAE_FC_LR
+    again = _vae(model, str(run), seq, feats, (58, 72), 50)  # cached: not trained another 50 iterations
+    assert all(torch.equal(a, b) for a, b in zip(first.state_dict().values(), again.state_dict().values()))
+    del meta["fc_lr"]  # a VAE cached before the fan-in rule
+    (run / "baselines" / "vae" / "vae.json").write_text(json.dumps(meta))
+    retrained = _vae(model, str(run), seq, feats, (58, 72), 50)
+    assert not all(torch.equal(a, b) for a, b in zip(first.state_dict().values(), retrained.state_dict().values()))
+    assert json.loads((run / "baselines" / "vae" / "vae.json").read_text())["iterations"] == 50
 
 
 def test_evaluate_command_writes_the_tables_json(trained, tmp_path, capsys):

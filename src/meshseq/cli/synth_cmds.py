@@ -126,14 +126,16 @@ def _vae(model, run: str, seq, feats: np.ndarray, exclude: tuple[int, int], iter
         except MeshseqError as err:  # a cache: train a new one
             warnings.warn(f"{err}; training a new VAE baseline", MeshseqWarning)
         else:
-            if meta.get("data") == seq.source and meta.get("exclude") == list(exclude):
+            # a VAE cached before its FC learned at the fan-in rate (vae_param_groups) is retrained
+            if meta.get("data") == seq.source and meta.get("exclude") == list(exclude) \
+                    and meta.get("fc_lr") == baselines.VAE_FC_LR:
                 return vae
     frames = np.concatenate([feats[: exclude[0]], feats[exclude[1]:]])
     if len(frames) < 2:
         raise MeshseqError(f"{seq.source}: no training frames outside {exclude[0]}:{exclude[1]} for the VAE baseline")
     vae = baselines.train_vae(frames, topo, latent=model.config.latent, iterations=iterations, device=model.device)
     baselines.save_vae(vae, folder, {"data": seq.source, "exclude": list(exclude), "iterations": iterations,
-                                     "note": baselines.VAE_NOTE})
+                                     "fc_lr": baselines.VAE_FC_LR, "note": baselines.VAE_NOTE})
     return vae
 
 
