@@ -92,7 +92,7 @@ def vae_param_groups(vae: MeshVAE, lr: float) -> list[dict]:
     from meshseq.train import FC_REFERENCE_FAN_IN, fc_lr_factor
 
     fc = vae.net.fc.weight
-    factor = fc_lr_factor(fc.shape[1], "fan-in", FC_REFERENCE_FAN_IN)
+    factor = fc_lr_factor(fc.shape[1], VAE_FC_LR, FC_REFERENCE_FAN_IN)
     return [{"params": [p for p in vae.parameters() if p is not fc], "lr": lr},
             {"params": [fc], "lr": lr * factor}]
 
