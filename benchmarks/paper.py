@@ -73,7 +73,8 @@ def dataset_specs(name: str, args) -> list[str]:
 
 
 def train_run(specs: list[str], name: str, run: Path, variant: str, args) -> dict:
-    from meshseq.checkpoint import list_checkpoints
+    from meshseq.checkpoint import best_folder, best_validation, list_checkpoints
+    from meshseq.data.windows import split_frames
     from meshseq.train import RECIPE_OPTIONS, RECIPES, TrainConfig, load_training_data, train
 
     model_opts, weights = VARIANTS[variant]
@@ -84,17 +85,25 @@ def train_run(specs: list[str], name: str, run: Path, variant: str, args) -> dic
     holdout = HOLDOUT.get(name, 0.2)
     # a sequence shorter than a window plus its held-out part (horse-gallop: 48 frames, 29 for
     # training) trains on windows as long as its training part
-    shortest = min(len(f) - int(round(holdout * len(f))) for f in data.features) // args.stride
+    # (with --validation, its block comes out of the training part too)
+    shortest = min(len(split_frames(len(f), holdout, "end", args.validation).train_frames())
+                   for f in data.features) // args.stride
     window = min(args.window, shortest)
     config = TrainConfig(iterations=args.iterations, window=window, batch=args.batch, stride=args.stride,
-                         seed=args.seed, checkpoint_every=max(50, args.iterations // 4), eval_every=0,
-                         holdout=holdout, **options)
+                         seed=args.seed, checkpoint_every=max(50, args.iterations // 4),
+                         eval_every=args.eval_every if args.validation else 0,
+                         holdout=holdout, validation=args.validation, **options)
     out = train(data, run, config, model_options=dict(model_opts, latent=args.latent),
                 device=args.device, resume=bool(list_checkpoints(run)), progress=not args.quiet)
     newest = list_checkpoints(run)[-1]  # the options the run really trained with (a resume keeps its own)
     stored = TrainConfig.from_dict(json.loads((newest / "model.json").read_text())["train"])
-    return {"seconds": training_seconds(run), "iteration": out["iteration"], "loss": out["loss"], "window": window,
-            "options": {k: getattr(stored, k) for k in RECIPE_OPTIONS}}
+    result = {"seconds": training_seconds(run), "iteration": out["iteration"], "loss": out["loss"], "window": window,
+              "options": {k: getattr(stored, k) for k in RECIPE_OPTIONS}}
+    if stored.validation:  # evaluate the checkpoint chosen on the validation block
+        best = out.get("best") or {**best_validation(run), "checkpoint": str(best_folder(run))}
+        result.update(validation=stored.validation, best=best, last_iteration=out["iteration"],
+                      iteration=best["iteration"], checkpoint=best["checkpoint"])
+    return result
 
 
 def training_seconds(run: Path) -> float:
@@ -250,7 +259,11 @@ def target_status(summaries: dict) -> list[str]:
             if name in TARGET_SETS:
                 add("all", name, "no record with the default recipe at the paper's configuration", None, "-")
             continue  # tagged records without baselines: Table 1, below
-        its = f"{bd['iteration']} / {PAPER_ITERATIONS}; {recipe_text(summaries[name]['runs'].get('bd', {}).get('options'))}"
+        run = summaries[name]['runs'].get('bd', {})
+        its = f"{bd['iteration']} / {PAPER_ITERATIONS}; {recipe_text(run.get('options'))}"
+        if run.get("validation"):
+            its += (f"; the checkpoint with the lowest error on a validation block ({run['validation']:g} of the "
+                    f"training frames), of {run['last_iteration']}")
         ratios = []
         for key in ("errors", "errors_aligned"):
             errs = bd[key]
@@ -260,7 +273,8 @@ def target_status(summaries: dict) -> list[str]:
                     ratios.append(errs["ours"][u][h] / best)
         worse = sum(r >= 1 for r in ratios)
         add("prediction h10/h15, u1/u3, raw and rigid: ours below the best baseline", name,
-            f"{len(ratios) - worse} of {len(ratios)} cells below; ratios {min(ratios):.2f}-{max(ratios):.2f}",
+            f"{len(ratios) - worse} of {len(ratios)} cells below; ratios {min(ratios):.2f}-{max(ratios):.2f} "
+            f"(mean {sum(ratios) / len(ratios):.2f})",
             worse == 0, its)
         if name in STRICT_SETS or any(name.startswith(b + "-") for b in STRICT_SETS):
             add("prediction: ours <= 0.7x the best baseline", name, f"largest ratio {max(ratios):.2f}",
@@ -446,6 +460,10 @@ def main() -> None:
     ap.add_argument("--stride", type=int, default=1)
     ap.add_argument("--latent", type=int, default=128)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--validation", type=float, default=0.0,
+                    help="meshseq train --validation: keep this fraction of the training frames as a validation "
+                    "block and evaluate the checkpoint with the lowest validation error (default 0: the last)")
+    ap.add_argument("--eval-every", type=int, default=100, help="with --validation: validate every K iterations")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--vae-iterations", type=int, default=1000)
     ap.add_argument("--cma-evals", type=int, default=200)
@@ -491,7 +509,8 @@ def main() -> None:
             for i, spec in enumerate(specs):
                 plots = run / "plots" if baselines and len(specs) == 1 else None
                 suffix = "" if len(specs) == 1 else "_" + spec.rsplit(":", 1)[-1]
-                per_sequence.append(evaluate_run(spec, run, run / f"evaluation{suffix}.json", plots, args,
+                chosen = Path(runs[key][variant].get("checkpoint", run))  # with --validation: the best
+                per_sequence.append(evaluate_run(spec, chosen, run / f"evaluation{suffix}.json", plots, args,
                                                  baselines=baselines, iteration=runs[key][variant]["iteration"]))
             r = results[key][variant] = combine_results(per_sequence)
             if baselines:

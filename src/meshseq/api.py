@@ -54,7 +54,8 @@ class Model:
         scaling: the ``meshseq.acap.Scaling`` fitted on the training frames.
     """
 
-    def __init__(self, net: BDLSTM, meta: dict, reference: np.ndarray, faces: np.ndarray, device):
+    def __init__(self, net: BDLSTM, meta: dict, reference: np.ndarray, faces: np.ndarray, device,
+                 reconstructor=None):
         from meshseq.acap import Scaling
 
         self.net = net.eval()
@@ -64,7 +65,7 @@ class Model:
         self.faces = faces
         self.scaling = Scaling.from_dict(meta["scaling"])
         self.device = torch.device(device)
-        self._reconstructor = None
+        self._reconstructor = reconstructor  # an acap.Reconstructor of (reference, faces); made when first needed
 
     def __repr__(self) -> str:
         c = self.config

@@ -21,6 +21,11 @@ Reading goes through :func:`load_folder` only, which checks everything against
 values): a damaged or edited checkpoint is one MeshseqError naming the file and the field. A run's
 newest usable checkpoint is :func:`load_latest`; damaged ones never count toward ``keep``.
 
+A run trained with a validation block (``meshseq train --validation``) also keeps
+``RUN/checkpoints/best/``: a checkpoint like the others (the one with the lowest validation error
+so far; its model.json records ``validation: {error, iteration}``), never pruned and never what
+``--resume`` continues from.
+
 A checkpoint folder is written under a temporary name and renamed into place
 (``meshseq.io.atomic_output``) after its files are flushed to disk, so a run killed at any moment
 leaves complete checkpoints only (plus, perhaps, a ``.tmp-*`` folder that the next save removes).
@@ -52,6 +57,7 @@ FORMAT_VERSION = 1
 MODEL_TENSORS, MODEL_META = "model.safetensors", "model.json"
 STATE_TENSORS, STATE_META = "state.safetensors", "state.json"
 _DIR_RE = re.compile(r"^\d{8}$")
+BEST = "best"  # the folder of a run's best checkpoint on its validation block
 
 
 def is_checkpoint_name(name: str) -> bool:
@@ -107,23 +113,25 @@ def save_checkpoint(
     state_tensors: dict,
     state_meta: dict,
     keep: int = 2,
+    name: str | None = None,
 ) -> Path:
     """Write ``RUN/checkpoints/<iteration>/`` atomically; keep the newest ``keep`` checkpoints.
 
     Returns the checkpoint folder. An existing folder of the same iteration is replaced. Only
     complete, undamaged checkpoints count toward ``keep`` (a damaged one is left alone), and a
-    non-finite tensor is refused (MeshseqError) before anything is written.
+    non-finite tensor is refused (MeshseqError) before anything is written. ``name`` (e.g.
+    ``BEST``): write ``RUN/checkpoints/<name>/`` instead, replacing it, and prune nothing.
     """
     for what, tensors in (("model", model_tensors), ("training state", state_tensors)):
-        for name, t in tensors.items():
+        for key, t in tensors.items():
             if t.is_floating_point() and not bool(torch.isfinite(t).all()):
-                raise MeshseqError(f"not writing checkpoint {int(iteration)}: {what} tensor {name} is not finite")
+                raise MeshseqError(f"not writing checkpoint {int(iteration)}: {what} tensor {key} is not finite")
     root = checkpoint_root(run_dir)
     root.mkdir(parents=True, exist_ok=True)
     for pattern in (".tmp-*", ".old-*"):  # left by a killed run
         for stale in root.glob(pattern):
             shutil.rmtree(stale, ignore_errors=True)
-    final = root / f"{int(iteration):08d}"
+    final = root / (name or f"{int(iteration):08d}")
     with atomic_output(final, force=True) as tmp:
         tmp.mkdir()
         _write_bytes(tmp / MODEL_TENSORS, save(_contiguous(model_tensors)))
@@ -135,6 +143,8 @@ def save_checkpoint(
         _write_json(tmp / STATE_META, smeta)
         _fsync_dir(tmp)
     _fsync_dir(root)
+    if name:
+        return final
     kept = [f for f in list_checkpoints(run_dir) if f == final or is_valid(f)]
     for old in kept[:-keep] if keep > 0 else []:
         if old != final:
@@ -262,6 +272,25 @@ def load_latest(run_dir: str | os.PathLike, with_state: bool = False) -> Loaded:
             warnings.warn(f"damaged checkpoint skipped: {err}", MeshseqWarning)
         return loaded
     raise MeshseqError(f"{run_dir}: every checkpoint is damaged (the newest: {problems[0]})")
+
+
+def best_folder(run_dir: str | os.PathLike) -> Path:
+    """Where a run keeps its best checkpoint on its validation block (it may not exist)."""
+    return checkpoint_root(run_dir) / BEST
+
+
+def best_validation(run_dir: str | os.PathLike) -> dict | None:
+    """``{"error", "iteration"}`` of a run's best checkpoint, or None if it has none (a damaged
+    one is warned about and counts as none: the next validation writes a new one)."""
+    folder = best_folder(run_dir)
+    if not folder.exists():
+        return None
+    try:
+        meta = load_folder(folder).meta
+    except MeshseqError as err:
+        warnings.warn(f"damaged best checkpoint ignored: {err}", MeshseqWarning)
+        return None
+    return meta.get("validation")
 
 
 def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:

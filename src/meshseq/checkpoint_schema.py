@@ -125,7 +125,7 @@ def config_schema(cls) -> dict:
     return schema
 
 
-_SPLIT = {"n_frames": int, "train": [[int]], "heldout": [int]}
+_SPLIT = {"n_frames": int, "train": [[int]], "heldout": [int], "validation": Opt([int])}
 _DATASET = {"name": str, "source": str, "n_frames": int, "split": _SPLIT}
 _SCALING = {"mode": str, "minimum": [float], "maximum": [float]}
 _TOPOLOGY = {"hash": str, "n_vertices": int, "n_faces": int}
@@ -140,6 +140,7 @@ def model_meta_schema() -> dict:
         "model": config_schema(ModelConfig), "train": config_schema(TrainConfig),
         "scaling": _SCALING, "topology": _TOPOLOGY, "datasets": [_DATASET],
         "features": Opt({"consistency": Opt(str), "reference": Opt(str)}),
+        "validation": Opt({"error": float, "iteration": int}),
     }
 
 
@@ -197,6 +198,7 @@ def _check_iteration(meta: dict, file, iteration: int | None) -> None:
 def _check_split(d: dict, file, field: str) -> None:
     n, s = d["n_frames"], d["split"]
     spans = [("train", span) for span in s["train"]] + [("heldout", s["heldout"])]
+    spans += [("validation", s["validation"])] if "validation" in s else []
     for name, span in spans:
         if len(span) != 2 or not 0 <= span[0] <= span[1] <= n:
             raise CheckpointError(file, f"{field}.split.{name}", f"{span}: expected [start, stop] inside 0..{n}")

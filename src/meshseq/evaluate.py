@@ -8,6 +8,8 @@
   sequences (the paper's Fig. 3), beside the ground truth's level.
 - ``completion_errors``: in-between error of completions against the truth for held-out gaps,
   for ours, CMA-ES and linear interpolation, and the diversity of K random-state samples.
+- ``validation_error``: one number for choosing a checkpoint during training (``meshseq train
+  --validation``): ours' prediction error on validation blocks carved out of the training frames.
 
 Functions take arrays and a loaded ``meshseq.api.Model``; they print nothing.
 """
@@ -86,6 +88,44 @@ def prediction_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
                 res["curve"] = curve.tolist()
         out[method] = res
     return out
+
+
+def validation_error(model, vertices: list[np.ndarray], feats: list[np.ndarray], blocks: list[tuple[int, int]],
+                     givens: tuple[int, ...] = (1, 3), horizon: int = 15, max_starts: int = 4) -> float:
+    """Ours' mean centroid-aligned per-vertex error (x 1e-4) on validation blocks.
+
+    For each data set ``d`` and each u in ``givens``, up to ``max_starts`` evenly spaced starts whose
+    predicted frames (horizons 1..H, ``H = min(horizon, shortest block)``) all lie in the block
+    ``blocks[d] = [lo, hi)``; the u given frames may precede it (they are training frames, the
+    predicted ones are not). The error is averaged over horizons, starts, data sets and givens.
+
+    Args:
+        model: ``meshseq.api.Model`` (the network in eval mode).
+        vertices: true (centred) vertices ``[(T_d, V, 3)]``; ``feats``: their scaled features
+            ``[(T_d, V, 9)]``.
+    """
+    h = min(horizon, min(hi - lo for lo, hi in blocks))
+    if h < 1:
+        raise MeshseqError("validation_error: a validation block is empty")
+    errors = []
+    for u in givens:
+        windows, truths = [], []
+        for v, f, (lo, hi) in zip(vertices, feats, blocks):
+            starts = prediction_starts(max(lo - u, 0), hi, u, h)
+            if len(starts) == 0:
+                continue
+            starts = np.unique(starts[np.linspace(0, len(starts) - 1, min(max_starts, len(starts))).round().astype(int)])
+            windows += [f[s:s + u] for s in starts]
+            truths += [v[s + u:s + u + h] for s in starts]
+        if not windows:
+            continue
+        pred = predict(model, np.stack(windows), h)  # (B, H, V, 9)
+        truth = np.concatenate(truths)  # (B H, V, 3)
+        verts = model.vertices(pred.reshape(-1, *pred.shape[2:]))
+        errors.append(per_vertex_error(verts, truth).mean() / UNITS)
+    if not errors:
+        raise MeshseqError(f"validation_error: no block has room for {min(givens)} given frame(s) and a horizon of {h}")
+    return float(np.mean(errors))
 
 
 def feature_change(model, feats: np.ndarray, starts: np.ndarray, given: int, n_frames: int,

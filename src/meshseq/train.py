@@ -56,7 +56,7 @@ import torch
 from torch import nn
 
 from meshseq import checkpoint as ckpt
-from meshseq.data.windows import Split, WindowSampler, check_holdout, heldout_rows, split_frames
+from meshseq.data.windows import Split, WindowSampler, check_holdout, check_validation, heldout_rows, split_frames
 from meshseq.errors import MeshseqError
 from meshseq.kernels import keep_freed_memory
 from meshseq.mesh import Topology, topology_hash
@@ -64,7 +64,8 @@ from meshseq.model import BDLSTM, ModelConfig, is_finite_number
 
 PRECISIONS = ("float32", "bf16")
 METRIC_FIELDS = ("iteration", "seconds", "loss", "rec", "bd", "kl", "l2", "motion", "vertex", "latent_spread",
-                 "latent_rms", "latent_sigma", "grad_norm", "clipped", "heldout_rec", "heldout_bd")
+                 "latent_rms", "latent_sigma", "grad_norm", "clipped", "heldout_rec", "heldout_bd",
+                 "validation")
 
 
 STEP_SCALES = ("none", "data")
@@ -100,7 +101,7 @@ EMA_WARMUP = 10
 LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "logvar_max": None,
                          "grad_clip": None, "adam_beta2": 0.999, "ema_decay": None,
                          "mu_max": None, "feedback_grad": "full",
-                         "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0}
+                         "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0, "validation": 0.0}
 
 def is_positive_integer(x) -> bool:
     """An int (numpy integers too) >= 1, not a bool and not a float: what a count option may hold."""
@@ -127,6 +128,7 @@ class TrainConfig:
     vertex_frames: int = 4  # frames of each chain that L_vertex reconstructs (meshseq.vertex_loss)
     holdout: float = 0.2
     holdout_at: str = "end"
+    validation: float = 0.0  # training frames kept out to choose the best checkpoint on (split_frames); off in both recipes
     scaling: str = "two-group"
     consistency: str = "temporal"
     given: int = 1
@@ -154,6 +156,7 @@ class TrainConfig:
         if int(self.window) < 2:
             raise MeshseqError(f"--window {self.window}: a window needs at least 2 frames")
         check_holdout(self.holdout, self.holdout_at)
+        check_validation(self.validation)
         for name in ("eval_every", "checkpoint_every", "log_every"):
             if int(getattr(self, name)) < 0:
                 raise MeshseqError(f"--{name.replace('_', '-')} {getattr(self, name)}: expected >= 0")
@@ -623,7 +626,8 @@ def remove_run_outputs(run_dir: Path) -> None:
     root = ckpt.checkpoint_root(run_dir)
     if root.is_dir():
         for p in root.iterdir():
-            if p.is_dir() and (ckpt.is_checkpoint_name(p.name) or p.name.startswith((".tmp-", ".old-"))):
+            if p.is_dir() and (ckpt.is_checkpoint_name(p.name) or p.name == ckpt.BEST
+                               or p.name.startswith((".tmp-", ".old-"))):
                 shutil.rmtree(p)
     for name in ("metrics.csv", ".tmp-metrics.csv"):
         (run_dir / name).unlink(missing_ok=True)
@@ -650,18 +654,26 @@ def fc_lr_factor(fan_in: int, fc_lr: str, reference: int = FC_REFERENCE_FAN_IN) 
     return min(1.0, reference / fan_in) if fc_lr == "fan-in" else 1.0
 
 
+def reconstructed_vertices(data: TrainingData) -> tuple[object, list[np.ndarray]]:
+    """``(Reconstructor of the training reference, [(T_d, V, 3)] centred vertices of every frame)``:
+    the truth as the features reconstruct it (no reconstruction error in what is compared)."""
+    from meshseq.acap import Reconstructor
+
+    rec = Reconstructor(data.reference, data.faces)
+    return rec, [rec.solve(f) for f in data.features]  # centred (align.place)
+
+
 def make_vertex_loss(data: TrainingData, scaled: list[np.ndarray], splits: list[Split], scaling,
-                     config: TrainConfig, device: torch.device):
+                     config: TrainConfig, device: torch.device, truth=None):
     """The ``VertexLoss`` of a run (None when ``w_vertex`` is 0): the training reference's torch
-    reconstruction and the unit calibrated on the training frames (``meshseq.vertex_loss``)."""
+    reconstruction and the unit calibrated on the training frames (``meshseq.vertex_loss``).
+    ``truth``: ``reconstructed_vertices(data)`` if already computed."""
     if config.w_vertex <= 0:
         return None
-    from meshseq.acap import Reconstructor
     from meshseq.acap.torch_reconstruct import TorchReconstructor
     from meshseq.vertex_loss import VertexLoss, vertex_unit
 
-    rec = Reconstructor(data.reference, data.faces)
-    verts = [rec.solve(f) for f in data.features]  # centred (align.place), as P
+    rec, verts = truth or reconstructed_vertices(data)
     unit = vertex_unit(scaled, verts, [s.train for s in splits])
     return VertexLoss(TorchReconstructor(rec, device=device), scaling, unit, config.vertex_frames)
 
@@ -787,7 +799,9 @@ def train(
     Returns:
         ``{"iteration", "checkpoint", "loss", "heldout_rec", "model"}`` after the last iteration
         (``model``: the trained ``BDLSTM``, with the weight average when ``ema_decay`` is set:
-        what the checkpoints deliver).
+        what the checkpoints deliver); with ``validation`` also ``"best"``: ``{"error",
+        "iteration", "checkpoint"}``, the checkpoint with the lowest validation error
+        (``RUN/checkpoints/best``; errors are measured every ``eval_every`` iterations and at the last).
     """
     from meshseq.acap import Scaling
 
@@ -832,7 +846,7 @@ def train(
         splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
     else:
         model_config = ModelConfig(n_vertices=V, **(model_options or {}))
-        splits = [split_frames(len(f), config.holdout, config.holdout_at) for f in data.features]
+        splits = [split_frames(len(f), config.holdout, config.holdout_at, config.validation) for f in data.features]
         train_feats = np.concatenate([f[s.train_frames()] for f, s in zip(data.features, splits)])
         if len(train_feats) == 0:
             raise MeshseqError(f"--holdout {config.holdout}: leaves no training frames")
@@ -900,7 +914,8 @@ def train(
         # different sampling noise per rank (the windows stay common)
         torch.manual_seed(config.seed + 7919 * dist_info.rank + start)
 
-    objective = WindowLoss(model, config, make_vertex_loss(data, scaled, splits, scaling, config, dev))
+    truth = reconstructed_vertices(data) if (config.w_vertex > 0 or config.validation > 0) else None
+    objective = WindowLoss(model, config, make_vertex_loss(data, scaled, splits, scaling, config, dev, truth))
     if dist_info.active:
         objective = nn.parallel.DistributedDataParallel(
             objective,
@@ -914,7 +929,7 @@ def train(
     ]
     topo_meta = {"hash": topology_hash(faces, V), "n_vertices": V, "n_faces": int(len(faces))}
 
-    def save(iteration: int, rng_t: dict) -> Path:
+    def save(iteration: int, rng_t: dict, name: str | None = None, extra: dict | None = None) -> Path:
         tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
         if average is not None:
             tensors.update({f"model.{n}": a for n, a in zip(param_names, average)})
@@ -929,6 +944,7 @@ def train(
             "features": {"reference": "first frame of data set 0", "consistency": config.consistency},
             "torch_version": torch.__version__,
             "world_size": dist_info.world,
+            **(extra or {}),
         }
         opt_t, opt_meta = ckpt.optimizer_state(optimizer, names)
         _, rng_meta = ckpt.rng_state()
@@ -936,7 +952,7 @@ def train(
                       "grad_norms": list(grad_history), **rng_meta}
         raw_t = {f"train.{n}": p for n, p in zip(param_names, params)} if average is not None else {}
         return ckpt.save_checkpoint(run_dir, iteration, tensors, meta, {**opt_t, **rng_t, **raw_t}, state_meta,
-                                    config.keep)
+                                    config.keep, name)
 
     def gather_rng() -> dict:
         """Every process's torch (and CUDA) generator state, named by rank (every rank calls this)."""
@@ -963,6 +979,13 @@ def train(
         if model_config.variant != "uni":
             out["heldout_bd"] = float(terms["bd"])
         return out
+
+    validate = None
+    if is_main and config.validation > 0:
+        validate = validation_scorer(model, params, average, data, scaling, splits, scaled, truth, dev)
+    best = ckpt.best_validation(run_dir) if (validate and found is not None) else None
+    if best is not None and best["iteration"] > start:  # written after the checkpoint we resume from
+        best = None
 
     metrics = Metrics(run_dir, start, log) if is_main else None
     share = config.batch // dist_info.world
@@ -1018,6 +1041,11 @@ def train(
                 row = row or {"iteration": it, "seconds": round(time.perf_counter() - t0, 3)}
                 row.update(evaluate())
                 last["heldout_rec"] = row.get("heldout_rec")
+                if validate is not None:
+                    row["validation"] = validate()
+                    if best is None or row["validation"] < best["error"]:
+                        best = {"error": row["validation"], "iteration": it}
+                        save(it, ckpt.rng_state()[0], ckpt.BEST, {"validation": best})
                 if not collapse_warned and it >= COLLAPSE_AFTER and "latent_spread" in row:
                     message = collapse_warning(row.get("kl"), row["latent_spread"], config.w_kl)
                     if message:
@@ -1048,7 +1076,37 @@ def train(
     if average is not None:  # return what the checkpoints deliver
         copy_weights(params, average)
     last["model"] = model
+    if best is not None:
+        last["best"] = {**best, "checkpoint": str(ckpt.best_folder(run_dir))}
+        log(f"best validation error {best['error']:.1f} (x 1e-4) at iteration {best['iteration']}: "
+            f"{ckpt.best_folder(run_dir)}")
     return last
+
+
+def validation_scorer(model: BDLSTM, params, average, data: TrainingData, scaling, splits: list[Split],
+                      scaled: list[np.ndarray], truth, device: torch.device):
+    """``score() -> float``: ``meshseq.evaluate.validation_error`` of the model as a checkpoint
+    would deliver it (the weight average, when kept) on every data set's validation block.
+
+    ``truth``: ``reconstructed_vertices(data)``.
+    """
+    from meshseq.api import Model
+    from meshseq.evaluate import validation_error
+
+    rec, vertices = truth
+    blocks = [s.validation for s in splits]
+    delivered = Model(model, {"scaling": scaling.to_dict()}, data.reference, data.faces, device, rec)
+    model.train()  # Model() switched it to eval mode
+
+    def score() -> float:
+        model.eval()
+        try:
+            with torch.no_grad(), weights_swapped(params, average):
+                return validation_error(delivered, vertices, scaled, blocks)
+        finally:
+            model.train()
+
+    return score
 
 
 #: iterations before the collapse check starts (the latent needs a few hundred to organise)

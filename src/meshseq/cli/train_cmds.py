@@ -112,6 +112,11 @@ def register(sub) -> None:
     d = p.add_argument_group("data")
     d.add_argument("--holdout", type=float, default=0.2, help="fraction of every data set held out (one block)")
     d.add_argument("--holdout-at", default="end", help="where the held-out block starts: start, end or a fraction")
+    d.add_argument("--validation", type=float, default=0.0, metavar="F",
+                   help="keep the last F of every data set's training frames out of training as a validation "
+                   "block; every --eval-every iterations ours' prediction error there (1 and 3 given frames, "
+                   "horizons up to 15) is measured and the best checkpoint kept as RUN/checkpoints/best "
+                   "(default 0: none)")
     d.add_argument("--scaling", choices=("two-group", "per-channel", "robust"), default="two-group",
                    help="feature scaling to [-0.95, 0.95], fitted on the training frames")
     d.add_argument("--consistency", choices=("temporal", "spatial"), default="temporal",
@@ -166,7 +171,7 @@ def _train(args) -> int:
     config = TrainConfig(
         iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride, seed=args.seed,
         lr=args.lr, adam_beta2=args.adam_beta2, holdout=args.holdout, holdout_at=args.holdout_at,
-        scaling=args.scaling, consistency=args.consistency, eval_every=args.eval_every,
+        validation=args.validation, scaling=args.scaling, consistency=args.consistency, eval_every=args.eval_every,
         checkpoint_every=args.checkpoint_every, log_every=args.log_every, keep=args.keep,
         precision=args.precision, vertex_frames=args.vertex_frames, **recipe,
     )
@@ -200,6 +205,10 @@ def _train(args) -> int:
         print(f"trained to iteration {result['iteration']}: loss {result['loss']}"
               + (f", held-out L_rec {held:.4g}" if held is not None else "")
               + f"; checkpoint {result['checkpoint']}")
+        if "best" in result:
+            best = result["best"]
+            print(f"best on the validation block: iteration {best['iteration']} (error {best['error']:.1f} x 1e-4); "
+                  f"checkpoint {best['checkpoint']}")
     return 0
 
 

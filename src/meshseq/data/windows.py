@@ -1,7 +1,10 @@
 """Held-out splits and training windows over feature sequences (numpy only).
 
 A data set of T frames is split into one contiguous held-out block (``holdout`` of the frames,
-starting at ``at``) and the training frames around it (one or two segments). A window is
+starting at ``at``) and the training frames around it (one or two segments). Optionally the last
+``validation`` of the training frames (the end of the last training segment) become a validation
+block: never trained on, measured during training to choose a checkpoint without looking at the
+held-out block. A window is
 ``window`` frames ``start, start + stride, ..., start + (window - 1) stride`` that lie inside one
 segment; every such window of every data set is equally likely.
 """
@@ -19,18 +22,29 @@ from meshseq.errors import MeshseqError
 
 @dataclass(frozen=True)
 class Split:
-    """Frame ranges of one data set: ``train`` segments and the ``heldout`` block, as [start, stop)."""
+    """Frame ranges of one data set: ``train`` segments, the ``heldout`` block and the
+    ``validation`` block (None unless asked for), as [start, stop)."""
 
     n_frames: int
     train: tuple[tuple[int, int], ...]
     heldout: tuple[int, int]
+    validation: tuple[int, int] | None = None
 
     def to_dict(self) -> dict:
-        return {"n_frames": self.n_frames, "train": [list(s) for s in self.train], "heldout": list(self.heldout)}
+        d = {"n_frames": self.n_frames, "train": [list(s) for s in self.train], "heldout": list(self.heldout)}
+        if self.validation is not None:
+            d["validation"] = list(self.validation)
+        return d
 
     @staticmethod
     def from_dict(d: dict) -> "Split":
-        return Split(int(d["n_frames"]), tuple(tuple(int(v) for v in s) for s in d["train"]), tuple(d["heldout"]))
+        val = d.get("validation")
+        return Split(int(d["n_frames"]), tuple(tuple(int(v) for v in s) for s in d["train"]),
+                     tuple(int(v) for v in d["heldout"]), None if val is None else tuple(int(v) for v in val))
+
+    def validation_frames(self) -> int:
+        """Frames in the validation block (0 without one)."""
+        return 0 if self.validation is None else self.validation[1] - self.validation[0]
 
     def train_frames(self) -> np.ndarray:
         """Indices ``(T_train,)`` of the training frames."""
@@ -53,12 +67,22 @@ def check_holdout(holdout: float, at: str | float) -> float | None:
     return frac
 
 
-def split_frames(n_frames: int, holdout: float = 0.2, at: str | float = "end") -> Split:
+def check_validation(validation: float) -> None:
+    """MeshseqError unless ``validation`` is a fraction in [0, 1)."""
+    if isinstance(validation, bool) or not isinstance(validation, (int, float)) or not 0.0 <= validation < 1.0:
+        raise MeshseqError(f"--validation {validation}: expected a fraction in [0, 1)")
+
+
+def split_frames(n_frames: int, holdout: float = 0.2, at: str | float = "end", validation: float = 0.0) -> Split:
     """One contiguous held-out block of ``round(holdout * n_frames)`` frames.
 
     ``at``: ``"end"`` (default), ``"start"``, or a fraction in [0, 1] of the sequence where the
     block starts (clipped so that it fits). ``holdout = 0`` holds nothing out.
+    ``validation`` > 0: the last ``max(2, round(validation * training frames))`` frames of the
+    last training segment become the validation block (just before an end held-out block);
+    MeshseqError if that leaves the segment without a frame.
     """
+    check_validation(validation)
     frac = check_holdout(holdout, at)
     n_hold = int(round(holdout * n_frames))
     if at == "end":
@@ -69,7 +93,16 @@ def split_frames(n_frames: int, holdout: float = 0.2, at: str | float = "end") -
         start = min(int(round(frac * n_frames)), n_frames - n_hold)
     stop = start + n_hold
     train = tuple((a, b) for a, b in ((0, start), (stop, n_frames)) if b > a)
-    return Split(n_frames, train, (start, stop))
+    if not validation:
+        return Split(n_frames, train, (start, stop))
+    n_val = max(2, int(round(validation * sum(b - a for a, b in train))))
+    if not train or train[-1][1] - train[-1][0] <= n_val:
+        longest = train[-1][1] - train[-1][0] if train else 0
+        raise MeshseqError(f"--validation {validation}: a validation block of {n_val} frames leaves no training "
+                           f"frame in a training part of {longest} frames (of {n_frames}); use a smaller "
+                           "--validation or --holdout")
+    a, b = train[-1]
+    return Split(n_frames, train[:-1] + ((a, b - n_val),), (start, stop), (b - n_val, b))
 
 
 def window_span(window: int, stride: int) -> int:
