@@ -144,3 +144,18 @@ def test_cli_validation_option(tmp_path, capsys):
     assert main(argv + ["--validation", "0.999", "--force"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--validation 0.999" in err
+
+
+def test_zero_velocity_validation_error_by_hand(trained):
+    _, data, run, _ = trained
+    model = meshseq.load(run)
+    feats = model.scaling.apply(data.features[0]).astype(np.float32)
+    verts = model.vertices(feats)
+    # block 24:32 (8 frames, so horizon 8): one start per u, its last given frame 23, predicting 24..31
+    expected = []
+    for u, starts in ((1, [23]), (3, [21])):
+        errs = [np.linalg.norm((verts[s + u - 1] - verts[s + u - 1].mean(0)) - (verts[t] - verts[t].mean(0)), axis=-1).mean()
+                for s in starts for t in range(s + u, s + u + 8)]
+        expected.append(np.mean(errs) / 1e-4)
+    got = validation_error(model, [verts], [feats], [(24, 32)], method="zero_velocity")
+    assert got == pytest.approx(np.mean(expected), rel=1e-4)

@@ -37,7 +37,12 @@ def predicted_features(method: str, model, feats: np.ndarray, starts: np.ndarray
                        n_frames: int, vae=None, sample: bool = False) -> np.ndarray:
     """Scaled features ``(B, n, V, 9)`` predicted by ``method`` after ``feats[s:s+given]``
     (``sample``: ours draws the VAE latent instead of taking its mean)."""
-    windows = np.stack([feats[s:s + given] for s in starts])  # (B, U, V, 9)
+    return method_prediction(method, model, np.stack([feats[s:s + given] for s in starts]), n_frames, vae, sample)
+
+
+def method_prediction(method: str, model, windows: np.ndarray, n_frames: int, vae=None,
+                      sample: bool = False) -> np.ndarray:
+    """Scaled features ``(B, n, V, 9)`` predicted by ``method`` after given frames ``(B, U, V, 9)``."""
     if method == "ours":
         return predict(model, windows, n_frames, sample=sample)
     if method == "zero_velocity":
@@ -91,8 +96,10 @@ def prediction_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
 
 
 def validation_error(model, vertices: list[np.ndarray], feats: list[np.ndarray], blocks: list[tuple[int, int]],
-                     givens: tuple[int, ...] = (1, 3), horizon: int = 15, max_starts: int = 4) -> float:
-    """Ours' mean centroid-aligned per-vertex error (x 1e-4) on validation blocks.
+                     givens: tuple[int, ...] = (1, 3), horizon: int = 15, max_starts: int = 4,
+                     method: str = "ours") -> float:
+    """Ours' (or a baseline ``method``'s) mean centroid-aligned per-vertex error (x 1e-4) on
+    validation blocks.
 
     For each data set ``d`` and each u in ``givens``, up to ``max_starts`` evenly spaced starts whose
     predicted frames (horizons 1..H, ``H = min(horizon, shortest block)``) all lie in the block
@@ -119,7 +126,7 @@ def validation_error(model, vertices: list[np.ndarray], feats: list[np.ndarray],
             truths += [v[s + u:s + u + h] for s in starts]
         if not windows:
             continue
-        pred = predict(model, np.stack(windows), h)  # (B, H, V, 9)
+        pred = method_prediction(method, model, np.stack(windows), h)  # (B, H, V, 9)
         truth = np.concatenate(truths)  # (B H, V, 3)
         verts = model.vertices(pred.reshape(-1, *pred.shape[2:]))
         errors.append(per_vertex_error(verts, truth).mean() / UNITS)
