@@ -6,6 +6,8 @@
 Each argument is ``RUN`` or ``RUN=LABEL`` (RUN: a ``meshseq train`` output folder, or its
 metrics.csv). Columns are the training metrics (``meshseq.train.METRIC_FIELDS``); ``--log``
 names the panels drawn on a log scale. Rows without a value (e.g. held-out rows) are skipped.
+``--line KEY=VALUE:LABEL`` draws a flat line in KEY's panel (a baseline's figure, e.g. zero
+velocity's validation error from ``benchmarks/validation_errors.py``).
 
 It also prints, per run, the loss spikes of ``--spike-key`` (default ``rec``): logged rows whose
 value exceeds ``--spike-factor`` times the median of the ``SPIKE_WINDOW`` rows before it, the
@@ -44,6 +46,8 @@ def main(argv=None) -> int:
     ap.add_argument("--until", type=int, default=None, help="last iteration shown (and counted)")
     ap.add_argument("--spike-key", default="rec", help="the column whose spikes are counted")
     ap.add_argument("--spike-factor", type=float, default=2.0, help="a spike: above this x the recent median")
+    ap.add_argument("--line", action="append", default=[], metavar="KEY=VALUE:LABEL",
+                    help="a flat line in KEY's panel (repeatable)")
     ap.add_argument("-o", "--output", required=True, help="PNG to write")
     ap.add_argument("--force", action="store_true", help="overwrite OUTPUT")
     args = ap.parse_args(argv)
@@ -75,8 +79,20 @@ def main(argv=None) -> int:
             end = float(np.median(y[np.isfinite(y)][-SPIKE_WINDOW:]))
             print(f"{label or Path(path).name}: {count} {args.spike_key} spikes (> {args.spike_factor:g}x the median of "
                   f"the {SPIKE_WINDOW} rows before), worst {worst:.2f}x; last {SPIKE_WINDOW} rows' median {end:.4g}")
+    for i, spec in enumerate(args.line):
+        key, _, rest = spec.partition("=")
+        value, _, label = rest.partition(":")
+        if key not in keys:
+            raise SystemExit(f"--line {spec}: {key!r} is not one of --keys")
+        try:
+            y = float(value)
+        except ValueError:
+            raise SystemExit(f"--line {spec}: expected KEY=VALUE:LABEL with a number") from None
+        axes[0][keys.index(key)].axhline(y, color="k", linestyle=("--", ":", "-.")[i % 3], linewidth=1, label=label or None)
     for ax, key in zip(axes[0], keys):
         ax.set_title(key)
+        if ax.get_legend_handles_labels()[1]:
+            ax.legend(fontsize=8)
         ax.set_xlabel("iteration")
         ax.grid(alpha=0.3)
         if key in log:
