@@ -42,10 +42,6 @@ class Split:
         return Split(int(d["n_frames"]), tuple(tuple(int(v) for v in s) for s in d["train"]),
                      tuple(int(v) for v in d["heldout"]), None if val is None else tuple(int(v) for v in val))
 
-    def validation_frames(self) -> int:
-        """Frames in the validation block (0 without one)."""
-        return 0 if self.validation is None else self.validation[1] - self.validation[0]
-
     def train_frames(self) -> np.ndarray:
         """Indices ``(T_train,)`` of the training frames."""
         return np.concatenate([np.arange(a, b) for a, b in self.train] or [np.zeros(0, np.int64)])
