@@ -259,7 +259,7 @@ def target_status(summaries: dict) -> list[str]:
             if name in TARGET_SETS:
                 add("all", name, "no record with the default recipe at the paper's configuration", None, "-")
             continue  # tagged records without baselines: Table 1, below
-        run = summaries[name]['runs'].get('bd', {})
+        run = summaries[name]["runs"].get("bd", {})
         its = f"{bd['iteration']} / {PAPER_ITERATIONS}; {recipe_text(run.get('options'))}"
         if run.get("validation"):
             its += (f"; the checkpoint with the lowest error on a validation block ({run['validation']:g} of the "
