@@ -820,6 +820,9 @@ def train(
     if resume and force:
         raise MeshseqError("--resume and --force: choose one (--resume continues RUN, --force starts it over)")
     found = resume_point(run_dir) if resume else None
+    if found is None:  # options the data cannot meet fail before --force removes anything
+        WindowSampler([split_frames(len(f), config.holdout, config.holdout_at, config.validation)
+                       for f in data.features], data.names, config.window, config.stride)
     if is_main:
         _prepare_run_dir(run_dir, resume, force)
     if dist_info.active:
