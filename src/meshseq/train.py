@@ -821,8 +821,8 @@ def train(
         raise MeshseqError("--resume and --force: choose one (--resume continues RUN, --force starts it over)")
     found = resume_point(run_dir) if resume else None
     if found is None:  # options the data cannot meet fail before --force removes anything
-        WindowSampler([split_frames(len(f), config.holdout, config.holdout_at, config.validation)
-                       for f in data.features], data.names, config.window, config.stride)
+        splits = [split_frames(len(f), config.holdout, config.holdout_at, config.validation) for f in data.features]
+        WindowSampler(splits, data.names, config.window, config.stride)
     if is_main:
         _prepare_run_dir(run_dir, resume, force)
     if dist_info.active:
@@ -849,7 +849,6 @@ def train(
         splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
     else:
         model_config = ModelConfig(n_vertices=V, **(model_options or {}))
-        splits = [split_frames(len(f), config.holdout, config.holdout_at, config.validation) for f in data.features]
         train_feats = np.concatenate([f[s.train_frames()] for f, s in zip(data.features, splits)])
         if len(train_feats) == 0:
             raise MeshseqError(f"--holdout {config.holdout}: leaves no training frames")
@@ -917,7 +916,8 @@ def train(
         # different sampling noise per rank (the windows stay common)
         torch.manual_seed(config.seed + 7919 * dist_info.rank + start)
 
-    truth = reconstructed_vertices(data) if (config.w_vertex > 0 or config.validation > 0) else None
+    validating = is_main and config.validation > 0  # the main process measures the validation blocks
+    truth = reconstructed_vertices(data) if (config.w_vertex > 0 or validating) else None
     objective = WindowLoss(model, config, make_vertex_loss(data, scaled, splits, scaling, config, dev, truth))
     if dist_info.active:
         objective = nn.parallel.DistributedDataParallel(
@@ -984,7 +984,7 @@ def train(
         return out
 
     validate = None
-    if is_main and config.validation > 0:
+    if validating:
         validate = validation_scorer(model, params, average, data, scaling, splits, scaled, truth, dev)
     best = ckpt.best_validation(run_dir) if (validate and found is not None) else None
     if best is not None and best["iteration"] > start:  # written after the checkpoint we resume from
