@@ -101,7 +101,8 @@ EMA_WARMUP = 10
 LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "logvar_max": None,
                          "grad_clip": None, "adam_beta2": 0.999, "ema_decay": None,
                          "mu_max": None, "feedback_grad": "full",
-                         "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0, "validation": 0.0}
+                         "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0, "validation": 0.0,
+                         "speed_augment": 1.0}
 
 def is_positive_integer(x) -> bool:
     """An int (numpy integers too) >= 1, not a bool and not a float: what a count option may hold."""
@@ -129,6 +130,7 @@ class TrainConfig:
     holdout: float = 0.2
     holdout_at: str = "end"
     validation: float = 0.0  # training frames kept out to choose the best checkpoint on (split_frames); off in both recipes
+    speed_augment: float = 1.0  # windows played at speeds in [1/R, R] (WindowSampler.sample_at_speeds); 1 = off
     scaling: str = "two-group"
     consistency: str = "temporal"
     given: int = 1
@@ -165,6 +167,8 @@ class TrainConfig:
                 raise MeshseqError(f"loss weight {name}={getattr(self, name)} must be >= 0")
         if not is_positive_integer(self.vertex_frames):
             raise MeshseqError(f"--vertex-frames {self.vertex_frames!r}: expected a positive integer")
+        if not (is_finite_number(self.speed_augment) and self.speed_augment >= 1):
+            raise MeshseqError(f"--speed-augment {self.speed_augment!r}: expected a number >= 1 (1 = off)")
         if not float(self.lr) > 0:
             raise MeshseqError(f"--lr {self.lr}: expected a positive number")
         if not (is_finite_number(self.adam_beta2) and 0 <= self.adam_beta2 < 1):
@@ -696,6 +700,19 @@ def parameter_groups(model: BDLSTM, config: TrainConfig) -> list[dict]:
             {"params": [model.fc.weight], "names": ["fc.weight"], "lr": config.lr * factor}]
 
 
+def training_windows(frames: torch.Tensor, sampler: WindowSampler, rng: np.random.Generator,
+                     config: TrainConfig) -> torch.Tensor:
+    """One iteration's ``(batch, window, V, 9)`` windows of the stacked ``(T, V, 9)`` frames;
+    with ``speed_augment > 1`` played at random speeds (``WindowSampler.sample_at_speeds``), each
+    frame the linear interpolation of the two frames around its position."""
+    if config.speed_augment <= 1:
+        return frames[torch.from_numpy(sampler.sample(rng, config.batch)).to(frames.device)]
+    before, after, weight = sampler.sample_at_speeds(rng, config.batch, config.speed_augment)
+    w = torch.from_numpy(weight).to(frames.device, frames.dtype)[..., None, None]
+    return torch.lerp(frames[torch.from_numpy(before).to(frames.device)],
+                      frames[torch.from_numpy(after).to(frames.device)], w)
+
+
 def grad_norm(parameters) -> torch.Tensor:
     """The 2-norm of all gradients together, a 0-d tensor (no host synchronisation)."""
     grads = [p.grad for p in parameters if p.grad is not None]
@@ -1006,8 +1023,7 @@ def train(
             bar.start()
             task = bar.add_task("train", total=config.iterations, completed=start, terms="")
         for it in range(start + 1, config.iterations + 1):
-            rows = sampler.sample(np_rng, config.batch)[lo:hi]
-            windows = frames[torch.from_numpy(rows).to(dev)]
+            windows = training_windows(frames, sampler, np_rng, config)[lo:hi]
             given = 1 if config.given <= 1 else int(np_rng.integers(1, config.given + 1))
             optimizer.zero_grad(set_to_none=True)
             with autocast(dev, config.precision):

@@ -117,6 +117,10 @@ def register(sub) -> None:
                    "block; every --eval-every iterations ours' prediction error there (1 and 3 given frames, "
                    "horizons up to 15) is measured and the best checkpoint kept as RUN/checkpoints/best "
                    "(default 0: none)")
+    d.add_argument("--speed-augment", type=float, default=1.0, metavar="R",
+                   help="play every training window at a random speed in [1/R, R] (log-uniform; each frame "
+                   "the linear interpolation of the two around it), a temporal-resampling augmentation for "
+                   "few sequences (default 1: off, as the paper)")
     d.add_argument("--scaling", choices=("two-group", "per-channel", "robust"), default="two-group",
                    help="feature scaling to [-0.95, 0.95], fitted on the training frames")
     d.add_argument("--consistency", choices=("temporal", "spatial"), default="temporal",
@@ -171,7 +175,7 @@ def _train(args) -> int:
     config = TrainConfig(
         iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride, seed=args.seed,
         lr=args.lr, adam_beta2=args.adam_beta2, holdout=args.holdout, holdout_at=args.holdout_at,
-        validation=args.validation, scaling=args.scaling, consistency=args.consistency, eval_every=args.eval_every,
+        validation=args.validation, speed_augment=args.speed_augment, scaling=args.scaling, consistency=args.consistency, eval_every=args.eval_every,
         checkpoint_every=args.checkpoint_every, log_every=args.log_every, keep=args.keep,
         precision=args.precision, vertex_frames=args.vertex_frames, **recipe,
     )

@@ -6,7 +6,9 @@ starting at ``at``) and the training frames around it (one or two segments). Opt
 block: never trained on, measured during training to choose a checkpoint without looking at the
 held-out block. A window is
 ``window`` frames ``start, start + stride, ..., start + (window - 1) stride`` that lie inside one
-segment; every such window of every data set is equally likely.
+segment; every such window of every data set is equally likely. With a speed augmentation
+(``WindowSampler.sample_at_speeds``) a window is played faster or slower: its frames lie at
+fractional positions of one segment, each the linear interpolation of the two frames around it.
 """
 
 from __future__ import annotations
@@ -135,6 +137,10 @@ class WindowSampler:
         self.offsets = np.concatenate([[0], np.cumsum([s.n_frames for s in splits])[:-1]]).astype(np.int64)
         segs = [(d, a, b) for d, s in enumerate(splits) for a, b in s.train]
         self.starts = window_starts(segs, window, stride)
+        # [first, stop) of the segment each window lies in (for sample_at_speeds)
+        self.segment_bounds = np.concatenate(
+            [np.tile([a, b], (max(b - a - window_span(window, stride) + 1, 0), 1)) for _, a, b in segs]
+            or [np.zeros((0, 2))]).astype(np.int64)
         if len(self.starts) == 0:
             longest = max((b - a for _, a, b in segs), default=0)
             raise MeshseqError(
@@ -151,6 +157,32 @@ class WindowSampler:
     def sample(self, rng: np.random.Generator, batch: int) -> np.ndarray:
         """``batch`` windows drawn uniformly with replacement -> ``(batch, window)`` row indices."""
         return self.rows(rng.integers(0, len(self.starts), size=batch))
+
+    def sample_at_speeds(self, rng: np.random.Generator, batch: int,
+                         max_speed: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``batch`` windows played at random speeds (a temporal-resampling augmentation).
+
+        Each window's segment is drawn as by ``sample`` (in proportion to its windows); its speed
+        ``s`` log-uniformly in ``[1 / max_speed, max_speed]`` and lowered where the window would not
+        fit in the segment; its first position uniformly where it fits. Frame ``k`` lies at the
+        fractional position ``p_k = first + s * stride * k``. Returns ``(before, after, weight)``,
+        each ``(batch, window)``: rows of the stacked frames around ``p_k`` and ``p_k``'s fraction,
+        so frame ``k`` is ``(1 - weight) * frames[before] + weight * frames[after]``.
+        """
+        picks = rng.integers(0, len(self.starts), size=batch)
+        log_max = math.log(max_speed)
+        speed = np.exp(rng.uniform(-log_max, log_max, size=batch))
+        first, stop = self.segment_bounds[picks, 0], self.segment_bounds[picks, 1]
+        room = (stop - 1 - first).astype(np.float64)  # the longest span a window can cover
+        steps = (self.window - 1) * self.stride
+        speed = np.minimum(speed, room / steps)
+        start = first + rng.uniform(0.0, 1.0, size=batch) * (room - speed * steps)
+        pos = start[:, None] + (speed * self.stride)[:, None] * np.arange(self.window)[None, :]
+        pos = np.clip(pos, first[:, None], (stop - 1)[:, None])
+        before = np.floor(pos).astype(np.int64)
+        after = np.minimum(before + 1, (stop - 1)[:, None])
+        offset = self.offsets[self.starts[picks, 0]][:, None]
+        return offset + before, offset + after, pos - before
 
 
 def heldout_rows(splits: list[Split], window: int, stride: int = 1, per_set: int = 4) -> np.ndarray:
