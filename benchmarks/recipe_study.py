@@ -22,13 +22,16 @@ blocks, giving learning curves of:
 ``--data``: ``bodies`` (``BODIES`` file: every sequence of a ``meshseq make-bodies`` HDF5),
 ``pcow``/``crane``/``horse-gallop`` (../shared/data), or paths/specs. ``--evaluate-on NAME...``
 scores only the training sequences with these names (the part after ``:`` or the file's stem), so
-runs trained on different sets can be compared on the same validation frames (the data study).
+runs trained on different sets can be compared on the same validation frames (the data study);
+``--unseen NAME...`` leaves those sequences out of training and scores only them, on the frames
+their validation block would hold (a motion the model was never shown).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import os
 import time
@@ -166,13 +169,21 @@ def run_study(args) -> dict:
     import torch
 
     from meshseq import checkpoint as ckpt
-    from meshseq.data.windows import Split
+    from meshseq.data.windows import Split, split_frames
     from meshseq.train import RECIPES, TrainConfig, train
 
     torch.set_num_threads(args.threads)
     specs = data_specs(args.data, args.bodies)
     scored = scored_indices(specs, args.evaluate_on)  # before training: a wrong name fails now
+    unseen = scored_indices(specs, args.unseen) if args.unseen else []
+    if unseen:  # scored only on these, which training never sees (one reference with the rest)
+        scored = unseen
     data, verts = development_data(specs)
+    unseen_features = [data.features[i] for i in unseen]
+    trained = [i for i in range(len(specs)) if i not in unseen]
+    data = dataclasses.replace(data, names=[data.names[i] for i in trained],
+                               sources=[data.sources[i] for i in trained],
+                               features=[data.features[i] for i in trained])
     options = dict(RECIPES[args.recipe])
     model_options = {}
     sets = parse_sets(args.set)
@@ -193,9 +204,13 @@ def run_study(args) -> dict:
     curve = []
     for path in ckpt.list_checkpoints(run):
         meta = json.loads((path / "model.json").read_text())
-        splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
-        point = evaluate_checkpoint(path, [verts[i] for i in scored], [data.features[i] for i in scored],
-                                    [splits[i] for i in scored])
+        if unseen:  # the frames a validation block would hold
+            feats = unseen_features
+            splits = [split_frames(len(f), args.val) for f in feats]
+        else:
+            splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
+            feats, splits = [data.features[i] for i in scored], [splits[i] for i in scored]
+        point = evaluate_checkpoint(path, [verts[i] for i in scored], feats, splits)
         row = metrics.get(point["iteration"], {})
         for k in ("kl", "latent_spread", "rec", "l2", "heldout_rec"):
             point[k] = float(row[k]) if row.get(k) not in (None, "") else None
@@ -206,7 +221,7 @@ def run_study(args) -> dict:
               f"lin {e['linear_acap']['u3']['centroid']['15']:8.1f}  rigid u3 ours {e['ours']['u3']['rigid']['15']:8.1f} "
               f"zv {e['zero_velocity']['u3']['rigid']['15']:8.1f}  KL {point['kl']}  spread {point['latent_spread']}  "
               f"motion {point['motion']:.4f}/{point['truth_motion']:.4f}", flush=True)
-    result = {"name": args.name, "recipe": args.recipe, "set": sets, "data": specs,
+    result = {"name": args.name, "recipe": args.recipe, "set": sets, "data": [specs[i] for i in trained],
               "scored": [specs[i] for i in scored], "train": config.to_dict(),
               "model": model_options, "seconds": seconds, "curve": curve,
               "command": "python benchmarks/recipe_study.py " + " ".join(args.argv)}
@@ -286,6 +301,9 @@ def main(argv=None) -> None:
     p.add_argument("--bodies", default=None, help="make-bodies HDF5 for --data bodies")
     p.add_argument("--evaluate-on", nargs="*", default=None, metavar="NAME",
                    help="score only these training sequences (names after ':' or file stems)")
+    p.add_argument("--unseen", nargs="*", default=None, metavar="NAME",
+                   help="leave these sequences out of training and score only them, on the frames their "
+                   "validation block would hold (features against the same reference as the rest)")
     p.add_argument("--recipe", default="default")
     p.add_argument("--set", nargs="*", default=[], help="training option overrides key=value")
     p.add_argument("--name", default=None)
