@@ -176,8 +176,10 @@ def run_study(args) -> dict:
     specs = data_specs(args.data, args.bodies)
     scored = scored_indices(specs, args.evaluate_on)  # before training: a wrong name fails now
     unseen = scored_indices(specs, args.unseen) if args.unseen else []
-    if unseen:  # scored only on these, which training never sees (one reference with the rest)
-        scored = unseen
+    if unseen:  # scored only on these (those of them named by --evaluate-on), never trained on
+        scored = [i for i in unseen if i in scored] if args.evaluate_on else unseen
+        if not scored:
+            raise SystemExit("--evaluate-on names none of the --unseen sequences")
     data, verts = development_data(specs)
     unseen_features = [data.features[i] for i in unseen]
     trained = [i for i in range(len(specs)) if i not in unseen]
