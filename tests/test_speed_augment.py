@@ -60,6 +60,9 @@ def test_training_windows_interpolate_the_frames_and_are_the_plain_windows_when_
     # off (R = 1): exactly the windows (and the random numbers) of WindowSampler.sample
     plain = training_windows(frames, sampler, np.random.default_rng(1), TrainConfig(window=8, batch=16))
     assert torch.equal(plain, frames[torch.from_numpy(sampler.sample(np.random.default_rng(1), 16))])
+    # a process's share (distributed training) is its slice of the same batch
+    part = training_windows(frames, sampler, np.random.default_rng(1), config, slice(4, 12))
+    assert torch.equal(part, w[4:12])
 
 
 def test_speed_augment_option_is_checked_and_stored(tmp_path, capsys):

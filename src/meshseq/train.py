@@ -701,16 +701,19 @@ def parameter_groups(model: BDLSTM, config: TrainConfig) -> list[dict]:
 
 
 def training_windows(frames: torch.Tensor, sampler: WindowSampler, rng: np.random.Generator,
-                     config: TrainConfig) -> torch.Tensor:
-    """One iteration's ``(batch, window, V, 9)`` windows of the stacked ``(T, V, 9)`` frames;
-    with ``speed_augment > 1`` played at random speeds (``WindowSampler.sample_at_speeds``), each
-    frame the linear interpolation of the two frames around its position."""
+                     config: TrainConfig, share: slice = slice(None)) -> torch.Tensor:
+    """This process's ``share`` of one iteration's ``(batch, window, V, 9)`` windows of the
+    stacked ``(T, V, 9)`` frames (every process draws the whole batch, so the generators stay in
+    step); with ``speed_augment > 1`` played at random speeds (``WindowSampler.sample_at_speeds``),
+    each frame the linear interpolation of the two frames around its position."""
+    def rows(r: np.ndarray) -> torch.Tensor:
+        return frames[torch.from_numpy(r[share]).to(frames.device)]
+
     if config.speed_augment <= 1:
-        return frames[torch.from_numpy(sampler.sample(rng, config.batch)).to(frames.device)]
+        return rows(sampler.sample(rng, config.batch))
     before, after, weight = sampler.sample_at_speeds(rng, config.batch, config.speed_augment)
-    w = torch.from_numpy(weight).to(frames.device, frames.dtype)[..., None, None]
-    return torch.lerp(frames[torch.from_numpy(before).to(frames.device)],
-                      frames[torch.from_numpy(after).to(frames.device)], w)
+    w = torch.from_numpy(weight[share]).to(frames.device, frames.dtype)[..., None, None]
+    return torch.lerp(rows(before), rows(after), w)
 
 
 def grad_norm(parameters) -> torch.Tensor:
@@ -1023,7 +1026,7 @@ def train(
             bar.start()
             task = bar.add_task("train", total=config.iterations, completed=start, terms="")
         for it in range(start + 1, config.iterations + 1):
-            windows = training_windows(frames, sampler, np_rng, config)[lo:hi]
+            windows = training_windows(frames, sampler, np_rng, config, slice(lo, hi))
             given = 1 if config.given <= 1 else int(np_rng.integers(1, config.given + 1))
             optimizer.zero_grad(set_to_none=True)
             with autocast(dev, config.precision):

@@ -175,7 +175,8 @@ def _train(args) -> int:
     config = TrainConfig(
         iterations=args.iterations, window=args.window, batch=args.batch, stride=args.stride, seed=args.seed,
         lr=args.lr, adam_beta2=args.adam_beta2, holdout=args.holdout, holdout_at=args.holdout_at,
-        validation=args.validation, speed_augment=args.speed_augment, scaling=args.scaling, consistency=args.consistency, eval_every=args.eval_every,
+        validation=args.validation, speed_augment=args.speed_augment, scaling=args.scaling,
+        consistency=args.consistency, eval_every=args.eval_every,
         checkpoint_every=args.checkpoint_every, log_every=args.log_every, keep=args.keep,
         precision=args.precision, vertex_frames=args.vertex_frames, **recipe,
     )
