@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import signal
 import sys
 import warnings
@@ -84,14 +83,4 @@ def _main_thread() -> bool:
 
 def run() -> None:
     """Console-script entry point."""
-    status = main()
-    from meshseq.cli import view_cmds
-
-    if view_cmds.served:
-        # `meshseq view` has stopped its server: leave without joining viser's callback worker
-        # threads at interpreter exit (a callback left in its pool held the exit for over 20 s in
-        # 2 of 4 full test runs on 2026-12-02); nothing of ours is left to flush but the streams
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(status)
-    sys.exit(status)
+    sys.exit(main())

@@ -10,9 +10,6 @@ import time
 from pathlib import Path
 
 from meshseq.errors import MeshseqError
-
-#: True once `meshseq view` has served and stopped (``meshseq.cli.run`` then exits at once)
-served = False
 from meshseq.io import check_output
 
 SEQ_HELP = ("a mesh sequence: folder of OBJ/PLY/OFF frames, .npz, FILE.h5:SEQUENCE, .glb/.gltf, "
@@ -238,5 +235,3 @@ def cmd_view(args: argparse.Namespace) -> int:
         return 0
     finally:
         viewer.stop()
-        global served
-        served = True
