@@ -99,7 +99,10 @@ def test_meshseq_view_serves_the_scene_to_headless_chromium(tmp_path):
     port = free_port()
     cmd = [sys.executable, "-c", "from meshseq.cli import run; run()", "view", horse_path, horse_path, "--port", str(port)]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    # Ctrl-C must reach the child even when the tests run as a background job (a shell then starts
+    # them with SIGINT ignored, which exec passes on): the child starts with SIGINT at its default
+    server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     driver = None
     try:
         # Wait (bounded) for the command to say where it serves.
