@@ -19,14 +19,10 @@ protocol (the last ``--holdout`` of the frames held out; horse-gallop 0.4 as in 
 from __future__ import annotations
 
 import argparse
-import os
-from pathlib import Path
 
 import numpy as np
-
-ROOT = Path(__file__).resolve().parent.parent
-SHARED = Path(os.environ.get("MESHSEQ_SHARED_DATA", ROOT.parent / "shared" / "data"))
-HOLDOUT = {"horse-gallop": 0.4}  # as benchmarks/paper.py
+from paper import HOLDOUT  # the held-out fraction per data set (benchmarks/paper.py)
+from recipe_study import data_specs, sequence_name
 
 
 def frame_distances(vertices: np.ndarray) -> np.ndarray:
@@ -57,18 +53,13 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     from meshseq.io import load_sequence
 
-    specs = [str(SHARED / f"{d}.npz") if (SHARED / f"{d}.npz").is_file() else d for d in args.data]
-    if args.bodies:
-        import h5py
-
-        with h5py.File(args.bodies, "r") as fh:
-            specs += [f"{args.bodies}:{k}" for k in sorted(fh.keys()) if k != "faces"]
+    specs = data_specs(args.data + (["bodies"] if args.bodies else []), args.bodies)
     if not specs:
         raise SystemExit("nothing to measure: name data sets or --bodies FILE")
     print("| sequence | frames | training frames | novelty (frame steps) | period, repeat | window, starts |")
     print("|---|---|---|---|---|---|")
     for spec in specs:
-        name = spec.rpartition(":")[2] if ":" in Path(spec).name else Path(spec).stem
+        name = sequence_name(spec)
         r = novelty(load_sequence(spec).vertices, HOLDOUT.get(name, 0.2), args.window)
         print(f"| {name} | {r['frames']} | {r['train']} | {r['novelty']:.2f} | {r['period']}, {r['repeat']:.2f} "
               f"| {r['window']}, {r['window_starts']} |", flush=True)

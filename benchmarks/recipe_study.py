@@ -81,14 +81,15 @@ def sequence_name(spec: str) -> str:
     return spec.rpartition(":")[2] if ":" in Path(spec).name else Path(spec).stem
 
 
-def scored_indices(specs: list[str], names: list[str] | None) -> list[int]:
-    """Indices of the specs whose sequence name is in ``names`` (all when ``names`` is empty)."""
+def scored_indices(specs: list[str], names: list[str] | None, option: str = "--evaluate-on") -> list[int]:
+    """Indices of the specs whose sequence name is in ``names`` (all when ``names`` is empty);
+    ``option`` names the command-line option in the error for an unknown name."""
     if not names:
         return list(range(len(specs)))
     known = [sequence_name(s) for s in specs]
     missing = sorted(set(names) - set(known))
     if missing:
-        raise SystemExit(f"--evaluate-on: {', '.join(missing)} not among the training sequences ({', '.join(known)})")
+        raise SystemExit(f"{option}: {', '.join(missing)} not among the training sequences ({', '.join(known)})")
     return [i for i, k in enumerate(known) if k in names]
 
 
@@ -175,13 +176,14 @@ def run_study(args) -> dict:
     torch.set_num_threads(args.threads)
     specs = data_specs(args.data, args.bodies)
     scored = scored_indices(specs, args.evaluate_on)  # before training: a wrong name fails now
-    unseen = scored_indices(specs, args.unseen) if args.unseen else []
+    unseen = scored_indices(specs, args.unseen, "--unseen") if args.unseen else []
     if unseen:  # scored only on these (those of them named by --evaluate-on), never trained on
         scored = [i for i in unseen if i in scored] if args.evaluate_on else unseen
         if not scored:
             raise SystemExit("--evaluate-on names none of the --unseen sequences")
     data, verts = development_data(specs)
     unseen_features = [data.features[i] for i in unseen]
+    unseen_splits = [split_frames(len(f), args.val) for f in unseen_features]  # where a validation block would be
     trained = [i for i in range(len(specs)) if i not in unseen]
     data = dataclasses.replace(data, names=[data.names[i] for i in trained],
                                sources=[data.sources[i] for i in trained],
@@ -206,9 +208,8 @@ def run_study(args) -> dict:
     curve = []
     for path in ckpt.list_checkpoints(run):
         meta = json.loads((path / "model.json").read_text())
-        if unseen:  # the frames a validation block would hold
-            feats = unseen_features
-            splits = [split_frames(len(f), args.val) for f in feats]
+        if unseen:
+            feats, splits = unseen_features, unseen_splits
         else:
             splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
             feats, splits = [data.features[i] for i in scored], [splits[i] for i in scored]
