@@ -83,6 +83,47 @@ def test_cpu_kernel_gradients_have_the_same_bits_with_any_thread_count(ring):
     assert all(torch.equal(a, c) for a, c in zip(g1, g3))
 
 
+# N: a whole number of 16-column blocks plus a remainder, and more than one 2048-column chunk of
+# fc_wx; L: 8-row blocks plus a remainder; B: 8-wide and 16-wide tiles, one and two of them
+@pytest.mark.parametrize("L,N,B", [(16, 4103, 16), (13, 4103, 8), (24, 150, 32), (8, 40, 24)])
+@pytest.mark.parametrize("with_bias", [True, False])
+def test_fc_products_match_torch(L, N, B, with_bias):
+    assert kernels.cpu_kernels_available()
+    torch.manual_seed(L + N + B)
+    W, x, h = torch.randn(L, N), torch.randn(N, B), torch.randn(L, B)
+    assert kernels._use_fc_kernels(W, x) and kernels._use_fc_kernels(W, h)  # the C++ path is what runs
+    b_l, b_n = (torch.randn(L), torch.randn(N)) if with_bias else (None, None)
+    wx = kernels.fc_product(W, x, b_l)
+    wtx = kernels.fc_transposed_product(W, h, b_n)
+    ref_wx = (W.double() @ x.double()) + (0 if b_l is None else b_l.double()[:, None])
+    ref_wtx = (W.double().t() @ h.double()) + (0 if b_n is None else b_n.double()[:, None])
+    assert wx.shape == (L, B) and wtx.shape == (N, B)
+    for got, ref in ((wx, ref_wx), (wtx, ref_wtx)):  # float32 rounding of sums of N terms
+        assert float((got.double() - ref).abs().max() / ref.abs().max()) <= 4e-6
+
+
+def test_fc_products_fall_back_to_torch_for_other_shapes_and_dtypes():
+    W, x = torch.randn(8, 40), torch.randn(40, 6)  # 6 columns: not a multiple of 8
+    assert not kernels._use_fc_kernels(W, x)
+    torch.testing.assert_close(kernels.fc_product(W, x), W @ x)
+    Wb = W.to(torch.bfloat16)  # --precision bf16: the product in the weight's dtype
+    assert kernels.fc_product(Wb, torch.randn(40, 8)).dtype == torch.bfloat16
+
+
+def test_fc_products_have_the_same_bits_with_any_thread_count():
+    torch.manual_seed(0)
+    W, x, h = torch.randn(16, 5000), torch.randn(5000, 16), torch.randn(16, 16)
+    before = torch.get_num_threads()
+    out = []
+    try:
+        for threads in (1, 3):
+            torch.set_num_threads(threads)
+            out.append((kernels.fc_product(W, x), kernels.fc_transposed_product(W, h)))
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])
+
+
 def test_each_kind_of_cpu_gets_its_own_build():
     """-march=native builds must not be shared between CPUs with different instruction sets."""
     avx2 = "processor\t: 0\nflags\t\t: fpu sse2 avx avx2 fma\nprocessor\t: 1\nflags\t\t: fpu sse2 avx avx2 fma\n"

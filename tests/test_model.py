@@ -252,7 +252,8 @@ def _reference_rollout(m, first, steps, state, n_forward):
     return torch.stack(frames).permute(3, 0, 1, 2), torch.stack(mus), torch.stack(logvars), state
 
 
-def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch):
+@pytest.mark.parametrize("windows", [3, 4])  # 6 chains: the FC products by torch; 8: by csrc/fc.cpp
+def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch, windows):
     """Loss and every gradient of the fused roll-out equal the plain reference to 1e-5 relative."""
     from meshseq.train import TrainConfig, WindowLoss
 
@@ -260,7 +261,7 @@ def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch):
     with torch.no_grad():
         for p in m.parameters():
             p.add_(0.05 * torch.randn_like(p))  # non-zero biases too
-    w = torch.randn(3, 6, limb.n_vertices, 9) * 0.3
+    w = torch.randn(windows, 6, limb.n_vertices, 9) * 0.3
     objective = WindowLoss(m, TrainConfig(w_vertex=0.0))
 
     def run():
