@@ -124,6 +124,54 @@ def test_fc_products_have_the_same_bits_with_any_thread_count():
     assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])
 
 
+@pytest.mark.parametrize("both", [True, False])
+@pytest.mark.parametrize("values", [9 * 7, 9 * 300])  # a partial SIMD vector; more than one summing block
+def test_frame_errors_match_torch_and_plain_autograd(both, values, monkeypatch):
+    assert kernels.cpu_kernels_available()
+    torch.manual_seed(values)
+    B, n = 3, 5
+    windows = torch.randn(B, n, values // 9, 9)
+    chains = torch.randn(2 * B if both else B, n, values // 9, 9)
+    ge = torch.randn(3, B, n)
+
+    def run():
+        c = chains.clone().requires_grad_()
+        e = kernels.frame_errors(c, windows)
+        (gc,) = torch.autograd.grad(e, c, ge)
+        return e.detach(), gc
+
+    e_cpp, g_cpp = run()
+    monkeypatch.setattr(kernels, "_cpu_kernels", False)  # the torch-operator path
+    e_ref, g_ref = run()
+    # by hand: window 1, frame 1 of each row
+    f, x = chains[1, 1], windows[1, 1]
+    assert float(e_cpp[0, 1, 1]) == pytest.approx(float((f - x).square().sum()), rel=1e-5)
+    if both:
+        g = chains[B + 1, n - 2]  # the backward chain's frame n-2 pairs with x_1
+        assert float(e_cpp[1, 1, n - 2]) == pytest.approx(float((g - x).square().sum()), rel=1e-5)
+        assert float(e_cpp[2, 1, 1]) == pytest.approx(float((f - g).square().sum()), rel=1e-5)
+    else:
+        assert e_cpp[1:].abs().max() == 0
+    torch.testing.assert_close(e_cpp, e_ref, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(g_cpp, g_ref, rtol=1e-5, atol=1e-5)
+
+
+def test_frame_errors_have_the_same_bits_with_any_thread_count():
+    torch.manual_seed(0)
+    windows, chains, ge = torch.randn(2, 4, 500, 9), torch.randn(4, 4, 500, 9), torch.randn(3, 2, 4)
+    before = torch.get_num_threads()
+    out = []
+    try:
+        for threads in (1, 3):
+            torch.set_num_threads(threads)
+            c = chains.clone().requires_grad_()
+            e = kernels.frame_errors(c, windows)
+            out.append((e.detach(), torch.autograd.grad(e, c, ge)[0]))
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])
+
+
 def test_each_kind_of_cpu_gets_its_own_build():
     """-march=native builds must not be shared between CPUs with different instruction sets."""
     avx2 = "processor\t: 0\nflags\t\t: fpu sse2 avx avx2 fma\nprocessor\t: 1\nflags\t\t: fpu sse2 avx avx2 fma\n"

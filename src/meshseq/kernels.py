@@ -28,6 +28,10 @@ The big FC's per-step products (``fc_product``: ``W x``, ``fc_transposed_product
 ``W`` ``(L, V*C)``, 39 MB on the horse, against 16 columns) run in ``csrc/fc.cpp`` on CPU in
 float32: each product is one stream over ``W``, each weight broadcast against a SIMD vector of
 the columns; BLAS ran these skinny shapes at a third to a half of the rate (see that file).
+
+The window losses' per-frame squared errors (``frame_errors``: L_rec of both chains and L_bd)
+run in ``csrc/frame_errors.cpp`` on CPU in float32: one pass forward, one backward, instead of
+about 25 passes of torch operators over ``(B, n, V, C)`` tensors.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-_SOURCES = [Path(__file__).resolve().parent / "csrc" / name for name in ("mesh_conv.cpp", "fc.cpp")]
+_SOURCES = [Path(__file__).resolve().parent / "csrc" / name for name in ("mesh_conv.cpp", "fc.cpp", "frame_errors.cpp")]
 _lock = threading.Lock()
 _cpu_kernels: bool | None = None  # None: not tried yet
 
@@ -69,7 +73,7 @@ def cpu_kernels_available() -> bool:
             clear_stale_lock(build)
             load("meshseq_kernels", [str(p) for p in _SOURCES], extra_cflags=["-O3", "-march=native", "-fopenmp"],
                  extra_ldflags=["-fopenmp"], build_directory=str(build), is_python_module=False, verbose=False)
-            _cpu_kernels = all(hasattr(torch.ops.meshseq, op) for op in ("conv_forward", "fc_wx", "fc_wtx"))
+            _cpu_kernels = all(hasattr(torch.ops.meshseq, op) for op in ("conv_forward", "fc_wx", "fc_wtx", "frame_errors"))
         except Exception as e:  # no compiler, no ninja, a compile error: fall back, say why
             reason = " ".join(str(e).split())[:300]
             warnings.warn(f"meshseq: the C++ CPU kernels could not be built ({type(e).__name__}: {reason}); "
@@ -151,6 +155,49 @@ def fc_transposed_product(weight: torch.Tensor, h: torch.Tensor, bias: torch.Ten
         return torch.ops.meshseq.fc_wtx(weight, h.contiguous(), bias)
     h = h.to(weight.dtype)
     return torch.mm(weight.t(), h) if bias is None else torch.addmm(bias.to(weight.dtype)[:, None], weight.t(), h)
+
+
+class _FrameErrors(torch.autograd.Function):
+    """``csrc/frame_errors.cpp`` with autograd; see ``frame_errors``."""
+
+    @staticmethod
+    def forward(ctx, chains, windows):
+        R, n = chains.shape[:2]
+        B = windows.shape[0]
+        c, w = chains.reshape(R, n, -1), windows.reshape(B, n, -1)
+        ctx.save_for_backward(c, w)
+        ctx.shape = chains.shape
+        return torch.ops.meshseq.frame_errors(c, w)
+
+    @staticmethod
+    def backward(ctx, ge):
+        c, w = ctx.saved_tensors
+        return torch.ops.meshseq.frame_errors_backward(ge, c, w).view(ctx.shape), None
+
+
+def frame_errors(chains: torch.Tensor, windows: torch.Tensor) -> torch.Tensor:
+    """Per-frame squared errors of a roll-out: ``(3, B, n)``, rows ``||f_i - x_i||^2``,
+    ``||g_i - x_{n-1-i}||^2``, ``||f_i - g_{n-1-i}||^2`` (the last two zero without backward chains).
+
+    ``chains`` ``(R, n, V, C)``: the forward chains ``f`` (rows ``:B``), then, when ``R = 2B``,
+    the backward chains ``g`` in their own order; ``windows`` ``(B, n, V, C)``: the truth ``x``.
+    On CPU in float32 one C++ pass forward and one backward (``csrc/frame_errors.cpp``, the
+    gradient without the windows'); elsewhere torch operators.
+    """
+    B = windows.shape[0]
+    if (chains.dtype == torch.float32 and windows.dtype == torch.float32 and not windows.requires_grad
+            and _use_cpu_kernels(chains)):
+        return _FrameErrors.apply(chains.contiguous(), windows.contiguous())
+
+    def error(a, b):
+        return (a - b).square().sum((-2, -1))
+
+    f = chains[:B]
+    e0 = error(f, windows)
+    if chains.shape[0] == B:
+        return torch.stack([e0, torch.zeros_like(e0), torch.zeros_like(e0)])
+    g = chains[B:]
+    return torch.stack([e0, error(g, windows.flip(1)), error(f, g.flip(1))])
 
 
 def ring_mean(ring, x: torch.Tensor, transpose: bool = False) -> torch.Tensor:

@@ -58,7 +58,7 @@ from torch import nn
 from meshseq import checkpoint as ckpt
 from meshseq.data.windows import Split, WindowSampler, check_holdout, check_validation, heldout_rows, split_frames
 from meshseq.errors import MeshseqError
-from meshseq.kernels import keep_freed_memory
+from meshseq.kernels import frame_errors, keep_freed_memory
 from meshseq.mesh import Topology, topology_hash
 from meshseq.model import BDLSTM, ModelConfig, is_finite_number
 
@@ -351,12 +351,16 @@ def frame_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def window_losses(out: dict, windows: torch.Tensor) -> dict:
     """Loss terms (unweighted) of ``BDLSTM.forward``'s output for ground truth ``(B, n, V, C)``."""
     fwd, bwd = out["forward"], out["backward"]
-    rec = frame_error(fwd[:, 1:], windows[:, 1:]).mean()
+    chains = out.get("chains")
+    if chains is None:
+        chains = fwd if bwd is None else torch.cat([fwd, bwd])
+    e = frame_errors(chains, windows)  # (3, B, n): rec forward, rec backward, bd per frame
+    rec = e[0, :, 1:].mean()  # the first frames are the given ones
     if bwd is None:
         bd = fwd.new_zeros(())
     else:
-        rec = rec + frame_error(bwd[:, 1:], windows.flip(1)[:, 1:]).mean()
-        bd = frame_error(fwd, bwd.flip(1)).mean()
+        rec = rec + e[1, :, 1:].mean()
+        bd = e[2].mean()
     kl = kl_divergence(out["mu"], out["logvar"]) if out["mu"].numel() else fwd.new_zeros(())
     return {"rec": rec, "bd": bd, "kl": kl, **latent_health(out["mu"], out["logvar"])}
 
