@@ -124,19 +124,20 @@ def test_fc_products_have_the_same_bits_with_any_thread_count():
     assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])
 
 
+@pytest.mark.parametrize("steps", [False, True])
 @pytest.mark.parametrize("both", [True, False])
 @pytest.mark.parametrize("values", [9 * 7, 9 * 300])  # a partial SIMD vector; more than one summing block
-def test_frame_errors_match_torch_and_plain_autograd(both, values, monkeypatch):
+def test_frame_errors_match_torch_and_plain_autograd(both, values, steps, monkeypatch):
     assert kernels.cpu_kernels_available()
     torch.manual_seed(values)
     B, n = 3, 5
     windows = torch.randn(B, n, values // 9, 9)
     chains = torch.randn(2 * B if both else B, n, values // 9, 9)
-    ge = torch.randn(3, B, n)
+    ge = torch.randn(6 if steps else 3, B, n)
 
     def run():
         c = chains.clone().requires_grad_()
-        e = kernels.frame_errors(c, windows)
+        e = kernels.frame_errors(c, windows, steps=steps)
         (gc,) = torch.autograd.grad(e, c, ge)
         return e.detach(), gc
 
@@ -151,21 +152,30 @@ def test_frame_errors_match_torch_and_plain_autograd(both, values, monkeypatch):
         assert float(e_cpp[1, 1, n - 2]) == pytest.approx(float((g - x).square().sum()), rel=1e-5)
         assert float(e_cpp[2, 1, 1]) == pytest.approx(float((f - g).square().sum()), rel=1e-5)
     else:
-        assert e_cpp[1:].abs().max() == 0
+        assert e_cpp[1:3].abs().max() == 0
+    if steps:
+        assert e_cpp.shape == (6, B, n) and e_cpp[3:, :, 0].abs().max() == 0
+        assert float(e_cpp[3, 1, 1]) == pytest.approx(float((f - chains[1, 0]).square().sum()), rel=1e-5)
+        assert float(e_cpp[5, 1, 1]) == pytest.approx(float((x - windows[1, 0]).square().sum()), rel=1e-5)
+        if both:
+            assert float(e_cpp[4, 1, 2]) == pytest.approx(float((chains[B + 1, 2] - chains[B + 1, 1]).square().sum()),
+                                                          rel=1e-5)
+        else:
+            assert e_cpp[4].abs().max() == 0
     torch.testing.assert_close(e_cpp, e_ref, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(g_cpp, g_ref, rtol=1e-5, atol=1e-5)
 
 
 def test_frame_errors_have_the_same_bits_with_any_thread_count():
     torch.manual_seed(0)
-    windows, chains, ge = torch.randn(2, 4, 500, 9), torch.randn(4, 4, 500, 9), torch.randn(3, 2, 4)
+    windows, chains, ge = torch.randn(2, 4, 500, 9), torch.randn(4, 4, 500, 9), torch.randn(6, 2, 4)
     before = torch.get_num_threads()
     out = []
     try:
         for threads in (1, 3):
             torch.set_num_threads(threads)
             c = chains.clone().requires_grad_()
-            e = kernels.frame_errors(c, windows)
+            e = kernels.frame_errors(c, windows, steps=True)
             out.append((e.detach(), torch.autograd.grad(e, c, ge)[0]))
     finally:
         torch.set_num_threads(before)

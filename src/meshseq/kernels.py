@@ -161,23 +161,25 @@ class _FrameErrors(torch.autograd.Function):
     """``csrc/frame_errors.cpp`` with autograd; see ``frame_errors``."""
 
     @staticmethod
-    def forward(ctx, chains, windows):
+    def forward(ctx, chains, windows, steps):
         R, n = chains.shape[:2]
         B = windows.shape[0]
         c, w = chains.reshape(R, n, -1), windows.reshape(B, n, -1)
         ctx.save_for_backward(c, w)
         ctx.shape = chains.shape
-        return torch.ops.meshseq.frame_errors(c, w)
+        return torch.ops.meshseq.frame_errors(c, w, steps)
 
     @staticmethod
     def backward(ctx, ge):
         c, w = ctx.saved_tensors
-        return torch.ops.meshseq.frame_errors_backward(ge, c, w).view(ctx.shape), None
+        return torch.ops.meshseq.frame_errors_backward(ge, c, w).view(ctx.shape), None, None
 
 
-def frame_errors(chains: torch.Tensor, windows: torch.Tensor) -> torch.Tensor:
+def frame_errors(chains: torch.Tensor, windows: torch.Tensor, steps: bool = False) -> torch.Tensor:
     """Per-frame squared errors of a roll-out: ``(3, B, n)``, rows ``||f_i - x_i||^2``,
-    ``||g_i - x_{n-1-i}||^2``, ``||f_i - g_{n-1-i}||^2`` (the last two zero without backward chains).
+    ``||g_i - x_{n-1-i}||^2``, ``||f_i - g_{n-1-i}||^2`` (the last two zero without backward chains);
+    with ``steps`` ``(6, B, n)``, also the squared step sizes ``||f_i - f_{i-1}||^2``,
+    ``||g_i - g_{i-1}||^2``, ``||x_i - x_{i-1}||^2`` (zero at ``i = 0``; L_motion's).
 
     ``chains`` ``(R, n, V, C)``: the forward chains ``f`` (rows ``:B``), then, when ``R = 2B``,
     the backward chains ``g`` in their own order; ``windows`` ``(B, n, V, C)``: the truth ``x``.
@@ -187,17 +189,27 @@ def frame_errors(chains: torch.Tensor, windows: torch.Tensor) -> torch.Tensor:
     B = windows.shape[0]
     if (chains.dtype == torch.float32 and windows.dtype == torch.float32 and not windows.requires_grad
             and _use_cpu_kernels(chains)):
-        return _FrameErrors.apply(chains.contiguous(), windows.contiguous())
+        return _FrameErrors.apply(chains.contiguous(), windows.contiguous(), steps)
 
     def error(a, b):
         return (a - b).square().sum((-2, -1))
 
+    def step_sizes(a):  # (B, n), zero first
+        return F.pad(error(a[:, 1:], a[:, :-1]), (1, 0))
+
     f = chains[:B]
-    e0 = error(f, windows)
+    rows = [error(f, windows)]
+    zero = torch.zeros_like(rows[0])
     if chains.shape[0] == B:
-        return torch.stack([e0, torch.zeros_like(e0), torch.zeros_like(e0)])
+        rows += [zero, zero]
+        if steps:
+            rows += [step_sizes(f), zero, step_sizes(windows)]
+        return torch.stack(rows)
     g = chains[B:]
-    return torch.stack([e0, error(g, windows.flip(1)), error(f, g.flip(1))])
+    rows += [error(g, windows.flip(1)), error(f, g.flip(1))]
+    if steps:
+        rows += [step_sizes(f), step_sizes(g), step_sizes(windows)]
+    return torch.stack(rows)
 
 
 def ring_mean(ring, x: torch.Tensor, transpose: bool = False) -> torch.Tensor:

@@ -348,13 +348,21 @@ def frame_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a - b).square().sum((-2, -1))
 
 
-def window_losses(out: dict, windows: torch.Tensor) -> dict:
-    """Loss terms (unweighted) of ``BDLSTM.forward``'s output for ground truth ``(B, n, V, C)``."""
-    fwd, bwd = out["forward"], out["backward"]
+def chains_of(out: dict) -> torch.Tensor:
+    """``BDLSTM.forward``'s chains as one tensor ``(B or 2B, n, V, C)`` (forward, then backward)."""
     chains = out.get("chains")
     if chains is None:
-        chains = fwd if bwd is None else torch.cat([fwd, bwd])
-    e = frame_errors(chains, windows)  # (3, B, n): rec forward, rec backward, bd per frame
+        chains = out["forward"] if out["backward"] is None else torch.cat([out["forward"], out["backward"]])
+    return chains
+
+
+def window_losses(out: dict, windows: torch.Tensor, errors: torch.Tensor | None = None) -> dict:
+    """Loss terms (unweighted) of ``BDLSTM.forward``'s output for ground truth ``(B, n, V, C)``.
+
+    ``errors``: ``kernels.frame_errors`` of the output, when already computed."""
+    fwd, bwd = out["forward"], out["backward"]
+    # (3 or 6, B, n): rec forward, rec backward, bd per frame (then the step sizes)
+    e = frame_errors(chains_of(out), windows) if errors is None else errors
     rec = e[0, :, 1:].mean()  # the first frames are the given ones
     if bwd is None:
         bd = fwd.new_zeros(())
@@ -365,20 +373,19 @@ def window_losses(out: dict, windows: torch.Tensor) -> dict:
     return {"rec": rec, "bd": bd, "kl": kl, **latent_health(out["mu"], out["logvar"])}
 
 
-def motion_loss(out: dict, windows: torch.Tensor) -> torch.Tensor:
+def motion_loss(out: dict, windows: torch.Tensor, errors: torch.Tensor | None = None) -> torch.Tensor:
     """L_motion: how far each generated frame-to-frame change is from the truth's in size,
     ``mean_windows mean_{i=2..n} (||S_i - S_{i-1}|| - ||X_i - X_{i-1}||)^2`` over both chains.
 
     Blind to the direction of the change, so it penalises a roll-out that slows down (the
     squared-error optimum under phase uncertainty) without asking for the right phase.
+    ``errors``: ``kernels.frame_errors(..., steps=True)`` of the output, when already computed.
     """
-    def speed(frames: torch.Tensor) -> torch.Tensor:  # (B, n, V, C) -> (B, n - 1)
-        return (frames[:, 1:] - frames[:, :-1]).square().sum((-2, -1))
-
-    true_speed = speed(windows).sqrt()  # the backward chain's truth runs in reverse: flip (B, n - 1)
-    loss = (speed(out["forward"]).add(1e-12).sqrt() - true_speed).square().mean()
+    e = frame_errors(chains_of(out), windows, steps=True) if errors is None else errors
+    true_speed = e[5, :, 1:].sqrt()  # (B, n - 1); the backward chain's truth runs in reverse: flip
+    loss = (e[3, :, 1:].add(1e-12).sqrt() - true_speed).square().mean()
     if out["backward"] is not None:
-        loss = loss + (speed(out["backward"]).add(1e-12).sqrt() - true_speed.flip(1)).square().mean()
+        loss = loss + (e[4, :, 1:].add(1e-12).sqrt() - true_speed.flip(1)).square().mean()
     return loss
 
 
@@ -425,9 +432,11 @@ class WindowLoss(nn.Module):
 
     def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1):
         out = self.model(windows, sample=sample, given=given, feedback_grad=self.feedback_grad)
-        terms = window_losses(out, windows)
-        if self.weights["motion"] > 0:
-            terms["motion"] = motion_loss(out, windows)
+        motion = self.weights["motion"] > 0
+        errors = frame_errors(chains_of(out), windows, steps=motion)  # one pass for all these terms
+        terms = window_losses(out, windows, errors)
+        if motion:
+            terms["motion"] = motion_loss(out, windows, errors)
         if self.vertex_loss is not None:
             terms["vertex"] = self.vertex_loss(out["forward"], windows)
             if out["backward"] is not None:

@@ -8,13 +8,20 @@
 //   e[1, b, i] = ||g_i - x_j||^2        g = chains[B + b]                   (L_rec, backward chain)
 //   e[2, b, i] = ||f_i - g_j||^2                                            (L_bd)
 //
-// (rows 1 and 2 only with the backward chains). Written with torch operators, these three terms
+// (rows 1 and 2 only with the backward chains), and with `steps` the step sizes of L_motion:
+//
+//   e[3, b, i] = ||f_i - f_{i-1}||^2,  e[4, b, i] = ||g_i - g_{i-1}||^2,  e[5, b, i] = ||x_i - x_{i-1}||^2
+//
+// (zero at i = 0; row 4 only with the backward chains). Written with torch operators, these terms
 // cost about 25 passes over (B, n, V, C) tensors forward and backward (differences, squares,
 // flipped copies, zero-filled slice gradients, accumulations; 78 MB each on the horse); here the
 // forward reads each frame once and the backward reads them once and writes the two gradients:
 //
 //   d chains[b, i]     = 2 ge[0, b, i] (f_i - x_i) + 2 ge[2, b, i] (f_i - g_j)
 //   d chains[B + b, j] = 2 ge[1, b, j] (g_j - x_i) - 2 ge[2, b, i] (f_i - g_j)
+//
+// plus, with `steps`, 2 ge[3, b, i] (f_i - f_{i-1}) - 2 ge[3, b, i+1] (f_{i+1} - f_i) (and the
+// same with row 4 for g); the windows get no gradient (row 5's is ignored).
 //
 // Sums: float SIMD partial sums over blocks of BLOCK values, the blocks added in double, in a
 // fixed order (the same bits with any number of threads).
@@ -68,12 +75,12 @@ void check(const torch::Tensor& chains, const torch::Tensor& windows) {
 
 }  // namespace
 
-// -> (3, B, n) float32 (rows 1, 2 zero without backward chains)
-torch::Tensor frame_errors(torch::Tensor chains, torch::Tensor windows) {
+// -> (3, B, n) float32, (6, B, n) with steps (rows 1, 2, 4 zero without backward chains)
+torch::Tensor frame_errors(torch::Tensor chains, torch::Tensor windows, bool steps) {
   check(chains, windows);
   const int64_t B = windows.size(0), n = windows.size(1), D = windows.size(2);
   const bool both = chains.size(0) == 2 * B;
-  auto e = torch::zeros({3, B, n}, windows.options());
+  auto e = torch::zeros({steps ? 6 : 3, B, n}, windows.options());
   const float* c = chains.data_ptr<float>();
   const float* x = windows.data_ptr<float>();
   float* out = e.data_ptr<float>();
@@ -86,11 +93,34 @@ torch::Tensor frame_errors(torch::Tensor chains, torch::Tensor windows) {
         const float* g = c + ((B + b) * n + j) * D;
         out[(B + b) * n + j] = float(squared_distance(g, x + (b * n + i) * D, D));
         out[(2 * B + b) * n + i] = float(squared_distance(f, g, D));
+        if (steps && j > 0) out[(4 * B + b) * n + j] = float(squared_distance(g, g - D, D));
+      }
+      if (steps && i > 0) {
+        out[(3 * B + b) * n + i] = float(squared_distance(f, f - D, D));
+        out[(5 * B + b) * n + i] = float(squared_distance(x + (b * n + i) * D, x + (b * n + i - 1) * D, D));
       }
     }
   });
   return e;
 }
+
+namespace {
+
+// grad[k] += a_prev (y_k - y_{k-1}) - a_next (y_{k+1} - y_k) over D values (the step-size terms
+// of frame k; a_prev = 0 at the first frame, a_next = 0 at the last, where the neighbour is unused)
+void add_step_gradient(float* grad, const float* y, int64_t D, float a_prev, float a_next, bool first, bool last) {
+  const float* prev = first ? y : y - D;
+  const float* next = last ? y : y + D;
+  const v16 ap = v16{} + a_prev, an = v16{} + a_next;
+  int64_t k = 0;
+  for (; k + 16 <= D; k += 16) {
+    const v16 yv = load(y + k);
+    store(grad + k, load(grad + k) + ap * (yv - load(prev + k)) - an * (load(next + k) - yv));
+  }
+  for (; k < D; ++k) grad[k] += a_prev * (y[k] - prev[k]) - a_next * (next[k] - y[k]);
+}
+
+}  // namespace
 
 // ge (3, B, n): the gradient of frame_errors' output -> the gradient of chains (R, n, D)
 torch::Tensor frame_errors_backward(torch::Tensor ge, torch::Tensor chains, torch::Tensor windows) {
@@ -98,8 +128,9 @@ torch::Tensor frame_errors_backward(torch::Tensor ge, torch::Tensor chains, torc
   const int64_t B = windows.size(0), n = windows.size(1), D = windows.size(2);
   const bool both = chains.size(0) == 2 * B;
   auto gec = ge.to(torch::kFloat).contiguous();
-  TORCH_CHECK(gec.dim() == 3 && gec.size(0) == 3 && gec.size(1) == B && gec.size(2) == n,
-              "frame_errors_backward: the gradient must be (3, B, n)");
+  TORCH_CHECK(gec.dim() == 3 && (gec.size(0) == 3 || gec.size(0) == 6) && gec.size(1) == B && gec.size(2) == n,
+              "frame_errors_backward: the gradient must be (3, B, n) or (6, B, n)");
+  const bool steps = gec.size(0) == 6;
   auto grad = torch::empty_like(chains);
   const float* c = chains.data_ptr<float>();
   const float* x = windows.data_ptr<float>();
@@ -117,6 +148,9 @@ torch::Tensor frame_errors_backward(torch::Tensor ge, torch::Tensor chains, torc
         int64_t k = 0;
         for (; k + 16 <= D; k += 16) store(gf + k, a * (load(f + k) - load(xi + k)));
         for (; k < D; ++k) gf[k] = a_rec * (f[k] - xi[k]);
+        if (steps)
+          add_step_gradient(gf, f, D, i > 0 ? 2.f * G[(3 * B + b) * n + i] : 0.f,
+                            i < n - 1 ? 2.f * G[(3 * B + b) * n + i + 1] : 0.f, i == 0, i == n - 1);
         continue;
       }
       const float* g = c + ((B + b) * n + j) * D;
@@ -134,6 +168,12 @@ torch::Tensor frame_errors_backward(torch::Tensor ge, torch::Tensor chains, torc
         const float dfg = f[k] - g[k];
         gf[k] = a_rec * (f[k] - xi[k]) + a_bd * dfg;
         gg[k] = a_back * (g[k] - xi[k]) - a_bd * dfg;
+      }
+      if (steps) {
+        add_step_gradient(gf, f, D, i > 0 ? 2.f * G[(3 * B + b) * n + i] : 0.f,
+                          i < n - 1 ? 2.f * G[(3 * B + b) * n + i + 1] : 0.f, i == 0, i == n - 1);
+        add_step_gradient(gg, g, D, j > 0 ? 2.f * G[(4 * B + b) * n + j] : 0.f,
+                          j < n - 1 ? 2.f * G[(4 * B + b) * n + j + 1] : 0.f, j == 0, j == n - 1);
       }
     }
   });
