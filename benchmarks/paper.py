@@ -97,7 +97,9 @@ def train_run(specs: list[str], name: str, run: Path, variant: str, args) -> dic
                 device=args.device, resume=bool(list_checkpoints(run)), progress=not args.quiet)
     newest = list_checkpoints(run)[-1]  # the options the run really trained with (a resume keeps its own)
     stored = TrainConfig.from_dict(json.loads((newest / "model.json").read_text())["train"])
-    result = {"seconds": training_seconds(run), "iteration": out["iteration"], "loss": out["loss"], "window": window,
+    # the window trained on: the recipe's window_fit may have shortened it further (fitted_window)
+    result = {"seconds": training_seconds(run), "iteration": out["iteration"], "loss": out["loss"],
+              "window": stored.window,
               "options": {k: getattr(stored, k) for k in RECIPE_OPTIONS}}
     if stored.validation:  # evaluate the checkpoint chosen on the validation block
         best = out.get("best") or {**best_validation(run), "checkpoint": str(best_folder(run))}

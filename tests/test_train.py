@@ -205,7 +205,9 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert err.startswith("meshseq: error:") and "missing.npz" in err and err.count("\n") == 1
     seq, _ = limb_data(frames=10)
     save_sequence(seq, tmp_path / "limb.npz")
-    assert main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--window", "32"]) == 2
+    # (the default recipe would shorten the window to the data: --window-fit none keeps it)
+    assert main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--window", "32",
+                 "--window-fit", "none"]) == 2
     assert "--window 32" in capsys.readouterr().err
     assert main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--batch", "0"]) == 2
     assert "--batch 0" in capsys.readouterr().err

@@ -103,6 +103,10 @@ def register(sub) -> None:
                    help="checkpoints deliver an exponential moving average of the weights with decay X "
                    "(about the last 1 / (1 - X) iterations), so a loss spike near the end does not reach "
                    "the delivered model; none: the last weights (the paper)")
+    l.add_argument("--window-fit", choices=("batch", "none"), default=None,
+                   help="batch (default recipe): shorten --window until the training frames hold at least "
+                   "--batch different windows (short sequences; never below 16 frames while that fits); "
+                   "none (--recipe paper): the window as given")
     l.add_argument("--feedback-grad", choices=("full", "stop"), default=None,
                    help="full: backpropagate through the generated frames fed back into the encoder (both "
                    "recipes, the paper); stop: each fed-back frame is a constant input, so the gradient "

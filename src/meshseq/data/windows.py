@@ -121,6 +121,41 @@ def window_starts(segments, window: int, stride: int = 1) -> np.ndarray:
     return np.concatenate(rows).astype(np.int64) if rows else np.zeros((0, 2), np.int64)
 
 
+#: ``fitted_window`` never shortens a window below this many frames (the paper's longest
+#: evaluated horizon, 15 steps from one given frame), unless no longer window fits at all.
+MIN_FITTED_WINDOW = 16
+
+
+def fitted_window(lengths, window: int, batch: int, stride: int = 1) -> int:
+    """The window length to train on: ``window``, shortened until the training segments of
+    ``lengths`` frames hold at least ``batch`` different windows (the window rule of the default
+    recipe, ``TrainConfig.window_fit = "batch"``).
+
+    With fewer different windows than a batch, every batch repeats the same few starts and the
+    model never learns to predict from the phases between them (horse-gallop: one window of 32
+    fits its 29 training frames; docs/recipe_study.md). Never below ``MIN_FITTED_WINDOW`` frames
+    while a window that long fits; below that, the longest window that fits at all; ``window``
+    unchanged if already enough windows fit, or if no window of 2 frames fits (the sampler then
+    says why).
+    """
+    lengths = [int(n) for n in lengths]
+
+    def count(w: int) -> int:
+        span = window_span(w, stride)
+        return sum(max(n - span + 1, 0) for n in lengths)
+
+    if count(window) >= batch:
+        return window
+    floor = min(window, MIN_FITTED_WINDOW)
+    for w in range(window - 1, floor - 1, -1):
+        if count(w) >= batch:
+            return w
+    for w in range(floor, 1, -1):
+        if count(w) >= 1:
+            return w
+    return window
+
+
 class WindowSampler:
     """Draws batches of training windows from several data sets stacked along frames.
 
