@@ -67,7 +67,7 @@ def training_fit(model, feats, segment, window: int, most: int = 16) -> tuple[fl
     windows, ours free-running from each window's first frame with ``z = mu``."""
     import torch
 
-    from meshseq.train import frame_error
+    from meshseq.kernels import frame_error
 
     lo, hi = segment
     starts = np.unique(np.linspace(lo, hi - window, min(most, hi - window - lo + 1)).round().astype(int))

@@ -29,9 +29,9 @@ The big FC's per-step products (``fc_product``: ``W x``, ``fc_transposed_product
 float32: each product is one stream over ``W``, each weight broadcast against a SIMD vector of
 the columns; BLAS ran these skinny shapes at a third to a half of the rate (see that file).
 
-The window losses' per-frame squared errors (``frame_errors``: L_rec of both chains and L_bd)
-run in ``csrc/frame_errors.cpp`` on CPU in float32: one pass forward, one backward, instead of
-about 25 passes of torch operators over ``(B, n, V, C)`` tensors.
+The window losses' per-frame squared errors (``frame_errors``: L_rec of both chains, L_bd and
+L_motion's step sizes) run in ``csrc/frame_errors.cpp`` on CPU in float32: one pass forward, one
+backward, instead of about 25 passes of torch operators over ``(B, n, V, C)`` tensors.
 """
 
 from __future__ import annotations
@@ -175,6 +175,11 @@ class _FrameErrors(torch.autograd.Function):
         return torch.ops.meshseq.frame_errors_backward(ge, c, w).view(ctx.shape), None, None
 
 
+def frame_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``||a - b||^2`` per frame: ``(B, n, V, C)`` pairs -> ``(B, n)`` (torch operators)."""
+    return (a - b).square().sum((-2, -1))
+
+
 def frame_errors(chains: torch.Tensor, windows: torch.Tensor, steps: bool = False) -> torch.Tensor:
     """Per-frame squared errors of a roll-out: ``(3, B, n)``, rows ``||f_i - x_i||^2``,
     ``||g_i - x_{n-1-i}||^2``, ``||f_i - g_{n-1-i}||^2`` (the last two zero without backward chains);
@@ -191,14 +196,11 @@ def frame_errors(chains: torch.Tensor, windows: torch.Tensor, steps: bool = Fals
             and _use_cpu_kernels(chains)):
         return _FrameErrors.apply(chains.contiguous(), windows.contiguous(), steps)
 
-    def error(a, b):
-        return (a - b).square().sum((-2, -1))
-
     def step_sizes(a):  # (B, n), zero first
-        return F.pad(error(a[:, 1:], a[:, :-1]), (1, 0))
+        return F.pad(frame_error(a[:, 1:], a[:, :-1]), (1, 0))
 
     f = chains[:B]
-    rows = [error(f, windows)]
+    rows = [frame_error(f, windows)]
     zero = torch.zeros_like(rows[0])
     if chains.shape[0] == B:
         rows += [zero, zero]
@@ -206,7 +208,7 @@ def frame_errors(chains: torch.Tensor, windows: torch.Tensor, steps: bool = Fals
             rows += [step_sizes(f), zero, step_sizes(windows)]
         return torch.stack(rows)
     g = chains[B:]
-    rows += [error(g, windows.flip(1)), error(f, g.flip(1))]
+    rows += [frame_error(g, windows.flip(1)), frame_error(f, g.flip(1))]
     if steps:
         rows += [step_sizes(f), step_sizes(g), step_sizes(windows)]
     return torch.stack(rows)

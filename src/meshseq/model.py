@@ -315,9 +315,9 @@ class _GradBank:
 
     ``right`` is kept as the ``(N, B)`` frame it is (no transposing copy per step);
     the sum is ``(R L)^T`` with ``R = [right_1 ... right_T]`` ``(N, T B)`` (one 64-byte-row copy,
-    into ``scratch``'s reused buffer when given)."""
+    into ``scratch``'s reused buffer)."""
 
-    def __init__(self, encoder_scale: float = 1.0, scratch: _Scratch | None = None):
+    def __init__(self, encoder_scale: float, scratch: _Scratch):
         self.left: list[torch.Tensor] = []
         self.right: list[torch.Tensor] = []
         self.encoder_scale = encoder_scale  # ``BDLSTM.encoder_grad_scale``: on the encoder's pairs
@@ -326,11 +326,8 @@ class _GradBank:
     def gradient(self) -> torch.Tensor | None:
         if not self.left:
             return None
-        if self.scratch is None:
-            R = torch.cat(self.right, 1)
-        else:
-            cols = sum(r.shape[1] for r in self.right)
-            R = torch.cat(self.right, 1, out=self.scratch.take((self.right[0].shape[0], cols), self.right[0]))
+        cols = sum(r.shape[1] for r in self.right)
+        R = torch.cat(self.right, 1, out=self.scratch.take((self.right[0].shape[0], cols), self.right[0]))
         g = (R @ torch.cat(self.left)).t().float()
         self.left.clear()
         self.right.clear()

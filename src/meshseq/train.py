@@ -363,11 +363,6 @@ def kl_weight(w_kl: float, n_vertices: int, kl_scale: str) -> float:
     return float(w_kl) * (n_vertices / KL_REFERENCE_VERTICES if kl_scale == "vertices" else 1.0)
 
 
-def frame_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``||a - b||^2`` per frame: ``(B, n, V, C)`` pairs -> ``(B, n)``."""
-    return (a - b).square().sum((-2, -1))
-
-
 def chains_of(out: dict) -> torch.Tensor:
     """``BDLSTM.forward``'s chains as one tensor ``(B or 2B, n, V, C)`` (forward, then backward)."""
     chains = out.get("chains")

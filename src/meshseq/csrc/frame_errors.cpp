@@ -122,7 +122,7 @@ void add_step_gradient(float* grad, const float* y, int64_t D, float a_prev, flo
 
 }  // namespace
 
-// ge (3, B, n): the gradient of frame_errors' output -> the gradient of chains (R, n, D)
+// ge (3 or 6, B, n): the gradient of frame_errors' output -> the gradient of chains (R, n, D)
 torch::Tensor frame_errors_backward(torch::Tensor ge, torch::Tensor chains, torch::Tensor windows) {
   check(chains, windows);
   const int64_t B = windows.size(0), n = windows.size(1), D = windows.size(2);
@@ -143,38 +143,35 @@ torch::Tensor frame_errors_backward(torch::Tensor ge, torch::Tensor chains, torc
       const float* xi = x + (b * n + i) * D;
       float* gf = out + (b * n + i) * D;
       const float a_rec = 2.f * G[b * n + i];
-      if (!both) {
+      if (both) {
+        const float* g = c + ((B + b) * n + j) * D;
+        float* gg = out + ((B + b) * n + j) * D;
+        const float a_bd = 2.f * G[(2 * B + b) * n + i], a_back = 2.f * G[(B + b) * n + j];
+        const v16 ar = v16{} + a_rec, ab = v16{} + a_bd, ak = v16{} + a_back;
+        int64_t k = 0;
+        for (; k + 16 <= D; k += 16) {
+          const v16 fv = load(f + k), gv = load(g + k), xv = load(xi + k);
+          const v16 dfg = fv - gv;
+          store(gf + k, ar * (fv - xv) + ab * dfg);
+          store(gg + k, ak * (gv - xv) - ab * dfg);
+        }
+        for (; k < D; ++k) {
+          const float dfg = f[k] - g[k];
+          gf[k] = a_rec * (f[k] - xi[k]) + a_bd * dfg;
+          gg[k] = a_back * (g[k] - xi[k]) - a_bd * dfg;
+        }
+        if (steps)
+          add_step_gradient(gg, g, D, j > 0 ? 2.f * G[(4 * B + b) * n + j] : 0.f,
+                            j < n - 1 ? 2.f * G[(4 * B + b) * n + j + 1] : 0.f, j == 0, j == n - 1);
+      } else {
         const v16 a = v16{} + a_rec;
         int64_t k = 0;
         for (; k + 16 <= D; k += 16) store(gf + k, a * (load(f + k) - load(xi + k)));
         for (; k < D; ++k) gf[k] = a_rec * (f[k] - xi[k]);
-        if (steps)
-          add_step_gradient(gf, f, D, i > 0 ? 2.f * G[(3 * B + b) * n + i] : 0.f,
-                            i < n - 1 ? 2.f * G[(3 * B + b) * n + i + 1] : 0.f, i == 0, i == n - 1);
-        continue;
       }
-      const float* g = c + ((B + b) * n + j) * D;
-      float* gg = out + ((B + b) * n + j) * D;
-      const float a_bd = 2.f * G[(2 * B + b) * n + i], a_back = 2.f * G[(B + b) * n + j];
-      const v16 ar = v16{} + a_rec, ab = v16{} + a_bd, ak = v16{} + a_back;
-      int64_t k = 0;
-      for (; k + 16 <= D; k += 16) {
-        const v16 fv = load(f + k), gv = load(g + k), xv = load(xi + k);
-        const v16 dfg = fv - gv;
-        store(gf + k, ar * (fv - xv) + ab * dfg);
-        store(gg + k, ak * (gv - xv) - ab * dfg);
-      }
-      for (; k < D; ++k) {
-        const float dfg = f[k] - g[k];
-        gf[k] = a_rec * (f[k] - xi[k]) + a_bd * dfg;
-        gg[k] = a_back * (g[k] - xi[k]) - a_bd * dfg;
-      }
-      if (steps) {
+      if (steps)
         add_step_gradient(gf, f, D, i > 0 ? 2.f * G[(3 * B + b) * n + i] : 0.f,
                           i < n - 1 ? 2.f * G[(3 * B + b) * n + i + 1] : 0.f, i == 0, i == n - 1);
-        add_step_gradient(gg, g, D, j > 0 ? 2.f * G[(4 * B + b) * n + j] : 0.f,
-                          j < n - 1 ? 2.f * G[(4 * B + b) * n + j + 1] : 0.f, j == 0, j == n - 1);
-      }
     }
   });
   return grad;
