@@ -225,18 +225,31 @@ def _seed_cell(variant: str, means: list[dict], avg: float) -> str:
     return f"{variant} diverged in {n_div} of {len(means)} seeds" if n_div else f"{variant} {avg:.1f}"
 
 
-def recipe_text(options: dict | None) -> str:
+def recipe_text(options: dict | None, window_kept: bool = False) -> str:
     """How a record's training options differ from today's default recipe, in a few words.
 
     Options a record lacks were added after it was made: it trained with their legacy values
-    (``train.LEGACY_TRAIN_DEFAULTS``). Records without options predate the motion term."""
+    (``train.LEGACY_TRAIN_DEFAULTS``). Records without options predate the motion term.
+    ``window_kept``: the default's window rule (``window_fit``) would have kept the record's
+    window, so a record made without the rule counts as made with it."""
     from meshseq.train import LEGACY_TRAIN_DEFAULTS, RECIPES
 
     if not options:
         return "w_motion 0 (no options recorded)"
     used = {**LEGACY_TRAIN_DEFAULTS, **options}
-    diff = [f"{k} {used[k]}" for k, v in RECIPES["default"].items() if k in used and used[k] != v]
+    diff = [f"{k} {used[k]}" for k, v in RECIPES["default"].items() if k in used and used[k] != v
+            and not (k == "window_fit" and window_kept)]
     return "default recipe" if not diff else "default recipe except " + ", ".join(diff)
+
+
+def window_kept(heldout: list[int], trained: int | None, window: int = 32, batch: int = 8) -> bool:
+    """Whether a record trained on windows of ``trained`` frames (None: older records, the paper's
+    window or the training part if shorter) trained on the window the default recipe's rule gives
+    sequences whose held-out part is ``heldout = [lo, hi]`` (the records' sets have sequences of
+    one length, ``lo`` training frames): then its ``window_fit none`` made no difference."""
+    from meshseq.data.windows import fitted_window
+
+    return fitted_window([heldout[0]], window, batch, 1) == (trained or min(window, heldout[0]))
 
 
 def target_status(summaries: dict) -> list[str]:
@@ -259,10 +272,12 @@ def target_status(summaries: dict) -> list[str]:
             continue
         if not bd or len(bd["errors"]) < 2:
             if name in TARGET_SETS:
-                add("all", name, "no record with the default recipe at the paper's configuration", None, "-")
+                tagged = any(n.startswith(name + "-") for n in summaries)
+                add("all", name, "no untagged record (the tagged records below)" if tagged
+                    else "no record at the paper's configuration", None, "-")
             continue  # tagged records without baselines: Table 1, below
         run = summaries[name]["runs"].get("bd", {})
-        its = f"{bd['iteration']} / {PAPER_ITERATIONS}; {recipe_text(run.get('options'))}"
+        its = f"{bd['iteration']} / {PAPER_ITERATIONS}; {recipe_text(run.get('options'), window_kept(bd['range'], run.get('window')))}"
         if run.get("validation"):
             its += (f"; the checkpoint with the lowest error on a validation block ({run['validation']:g} of the "
                     f"training frames), of {run['last_iteration']}")

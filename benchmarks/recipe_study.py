@@ -13,7 +13,10 @@ blocks, giving learning curves of:
 - KL (nats, summed over the latent) and the latent spread (std of mu over frames) from the
   training metrics;
 - motion level: the mean relative feature change of 50 generated frames (paper Fig. 3) over
-  the ground truth's level (1.0 = moves like the data, 0 = frozen).
+  the ground truth's level (1.0 = moves like the data, 0 = frozen);
+- with ``--gaps``: completion between two keyframes of the validation block (the in-between
+  frames' error for ours, linear interpolation of the ACAP features and of the vertices, and the
+  diversity of two random-state completions), as ``paper.py`` measures it on held-out frames.
 
     python benchmarks/recipe_study.py --data bodies --recipe paper --iterations 600 --every 100 \\
         --out /tmp/study --name paper
@@ -114,11 +117,17 @@ def parse_sets(items: list[str]) -> dict:
     return out
 
 
+COMPLETION_METHODS = ("ours", "linear", "linear_vertices")  # no CMA-ES here: seconds per gap
+
+
 def evaluate_checkpoint(path: Path, verts: list[np.ndarray], feats_raw: list[np.ndarray], splits,
-                        horizons=(5, 10, 15), givens=(1, 3), motion_frames: int = 50) -> dict:
-    """Validation metrics of one checkpoint, averaged over sequences (weighted by their starts)."""
+                        horizons=(5, 10, 15), givens=(1, 3), motion_frames: int = 50,
+                        gaps: tuple[int, ...] = ()) -> dict:
+    """Validation metrics of one checkpoint, averaged over sequences (weighted by their starts);
+    ``gaps``: also completion errors (``completion``: gap -> method -> error x 1e-4, with
+    ``diversity`` and ``starts``) where a gap fits in a validation block."""
     import meshseq
-    from meshseq.evaluate import feature_change, prediction_errors, prediction_starts
+    from meshseq.evaluate import completion_errors, feature_change, prediction_errors, prediction_starts
     from meshseq.mesh import bounding_box_diagonal
     from meshseq.plots import feature_change as relative_change
 
@@ -126,6 +135,7 @@ def evaluate_checkpoint(path: Path, verts: list[np.ndarray], feats_raw: list[np.
     methods = ["ours", "zero_velocity", "linear_acap"]
     acc: dict = {}
     motion, truth_level = [], []
+    completion: dict = {}
     for v, f, split in zip(verts, feats_raw, splits):
         lo, hi = split.heldout
         scaled = model.scaling.apply(f).astype(np.float32)
@@ -149,13 +159,29 @@ def evaluate_checkpoint(path: Path, verts: list[np.ndarray], feats_raw: list[np.
             fc = feature_change(model, scaled, starts, 1, motion_frames, ["ours"])
             motion.append(float(np.mean(fc["ours"])))
             truth_level.append(float(relative_change(f[lo:hi]).mean()))
+        for gap, res in completion_errors(model, v, scaled, lo, hi, list(gaps), list(COMPLETION_METHODS),
+                                          samples=2).items():
+            a = completion.setdefault(gap, {"starts": 0})
+            for k, e in res.items():
+                if k != "starts":
+                    a[k] = a.get(k, 0.0) + e * res["starts"]
+            a["starts"] += res["starts"]
     errors = {}
     for (m, u, key, h), (e, ed, n) in acc.items():
         errors.setdefault(m, {}).setdefault(f"u{u}", {}).setdefault(key, {})[str(h)] = e / n
         errors[m][f"u{u}"].setdefault(key + "_per_diagonal", {})[str(h)] = ed / n
-    return {"iteration": model.iteration, "errors": errors,
+    completion = {g: {k: (e if k == "starts" else e / a["starts"]) for k, e in a.items()}
+                  for g, a in completion.items()}
+    return {"iteration": model.iteration, "errors": errors, "completion": completion,
             "motion": float(np.mean(motion)) if motion else None,
             "truth_motion": float(np.mean(truth_level)) if truth_level else None}
+
+
+def completion_line(point: dict) -> str:
+    """``  gap 10 ours/linear/linear_vertices 512/540/601 div 12`` per scored gap ('' without)."""
+    return "".join(f"  gap {g} ours/linear/linear_vertices {r['ours']:.0f}/{r['linear']:.0f}/"
+                   f"{r['linear_vertices']:.0f} div {r.get('diversity', float('nan')):.1f}"
+                   for g, r in point.get("completion", {}).items())
 
 
 def read_metrics(run: Path) -> dict:
@@ -213,7 +239,7 @@ def run_study(args) -> dict:
         else:
             splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
             feats, splits = [data.features[i] for i in scored], [splits[i] for i in scored]
-        point = evaluate_checkpoint(path, [verts[i] for i in scored], feats, splits)
+        point = evaluate_checkpoint(path, [verts[i] for i in scored], feats, splits, gaps=tuple(args.gaps))
         row = metrics.get(point["iteration"], {})
         for k in ("kl", "latent_spread", "rec", "l2", "heldout_rec"):
             point[k] = float(row[k]) if row.get(k) not in (None, "") else None
@@ -223,7 +249,7 @@ def run_study(args) -> dict:
               f"zv {e['zero_velocity']['u1']['centroid']['15']:8.1f}  u3 ours {e['ours']['u3']['centroid']['15']:8.1f} "
               f"lin {e['linear_acap']['u3']['centroid']['15']:8.1f}  rigid u3 ours {e['ours']['u3']['rigid']['15']:8.1f} "
               f"zv {e['zero_velocity']['u3']['rigid']['15']:8.1f}  KL {point['kl']}  spread {point['latent_spread']}  "
-              f"motion {point['motion']:.4f}/{point['truth_motion']:.4f}", flush=True)
+              f"motion {point['motion']:.4f}/{point['truth_motion']:.4f}{completion_line(point)}", flush=True)
     result = {"name": args.name, "recipe": args.recipe, "set": sets, "data": [specs[i] for i in trained],
               "scored": [specs[i] for i in scored], "train": config.to_dict(),
               "model": model_options, "seconds": seconds, "curve": curve,
@@ -276,13 +302,22 @@ def mean_ratio(errors: dict) -> float:
     return float(np.mean(ratios))
 
 
+def completion_ratios(point: dict) -> str:
+    """``0.93 / 1.05``: ours over the better of the two linear interpolations per scored gap."""
+    return " / ".join(f"{r['ours'] / min(r['linear'], r['linear_vertices']):.2f}"
+                      for _, r in sorted(point.get("completion", {}).items(), key=lambda kv: int(kv[0])))
+
+
 def summary_table(files: list[str]) -> str:
-    """Markdown table of the last checkpoint of each run (validation, h15, x 1e-4)."""
+    """Markdown table of the last checkpoint of each run (validation, h15, x 1e-4); runs scored
+    with ``--gaps`` add their completion ratios."""
+    runs = [json.loads(Path(f).read_text()) for f in files]
+    gaps = sorted({g for r in runs for g in r["curve"][-1].get("completion", {})}, key=int)
+    extra = f" completion gap {' / '.join(gaps)}: ours / better linear |" if gaps else ""
     lines = ["| run | changed (vs. the paper's recipe) | it | u1 ours / zero vel. | u3 ours / best baseline "
-             "| u3 rigid ours / best | mean ratio (8 cells) | KL nats | latent spread | motion / truth |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for f in files:
-        r = json.loads(Path(f).read_text())
+             "| u3 rigid ours / best | mean ratio (8 cells) | KL nats | latent spread | motion / truth |" + extra,
+             "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if gaps else "")]
+    for r in runs:
         p = r["curve"][-1]
         e = p["errors"]
         best = lambda u, k: min(e[m][u][k]["15"] for m in ("zero_velocity", "linear_acap"))  # noqa: E731
@@ -291,7 +326,8 @@ def summary_table(files: list[str]) -> str:
             f"| {r['name']} | {changed} | {p['iteration']} | {e['ours']['u1']['centroid']['15']:.0f} / "
             f"{e['zero_velocity']['u1']['centroid']['15']:.0f} | {e['ours']['u3']['centroid']['15']:.0f} / "
             f"{best('u3', 'centroid'):.0f} | {e['ours']['u3']['rigid']['15']:.0f} / {best('u3', 'rigid'):.0f} | "
-            f"{mean_ratio(e):.3f} | {p['kl']:.3g} | {p['latent_spread']:.3g} | {p['motion'] / p['truth_motion']:.2f} |")
+            f"{mean_ratio(e):.3f} | {p['kl']:.3g} | {p['latent_spread']:.3g} | {p['motion'] / p['truth_motion']:.2f} |"
+            + (f" {completion_ratios(p) or '-'} |" if gaps else ""))
     return "\n".join(lines)
 
 
@@ -316,6 +352,8 @@ def main(argv=None) -> None:
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--val", type=float, default=0.25, help="validation fraction of the training part")
+    p.add_argument("--gaps", type=int, nargs="*", default=[], metavar="GAP",
+                   help="also score completion over these gaps (in-between frames) in the validation blocks")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", default="/tmp/meshseq-study")
     p.add_argument("--quiet", action="store_true")
