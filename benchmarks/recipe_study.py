@@ -259,30 +259,53 @@ def run_study(args) -> dict:
     return result
 
 
+TABLE1_CELLS = [(u, h) for u in ("u1", "u3") for h in ("5", "10", "15")]  # Table 1's six cells
+
+
+def prediction_figure(errors: dict, method: str, given: str, key: str, horizon: str) -> float:
+    """One method's validation error (x 1e-4) at ``horizon`` after ``given`` frames; ``horizon``
+    "mean": the mean of Table 1's six cells (u1/u3 x h5/h10/h15, ``given`` ignored)."""
+    if horizon == "mean":
+        return float(np.mean([errors[method][u][key][h] for u, h in TABLE1_CELLS]))
+    return errors[method][given][key][horizon]
+
+
 def plot(files: list[str], output: str, given: str = "u3", horizon: str = "15") -> None:
+    """Learning curves of the runs: validation error (centroid, rigid), KL, motion level, and the
+    completion ratios of runs scored with ``--gaps`` (a fifth panel)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     runs = [json.loads(Path(f).read_text()) for f in files]
-    fig, axes = plt.subplots(1, 4, figsize=(19, 4.2))
+    gaps = sorted({g for r in runs for p in r["curve"] for g in p.get("completion", {})}, key=int)
+    fig, axes = plt.subplots(1, 5 if gaps else 4, figsize=(23.5 if gaps else 19, 4.2))
     for r in runs:
         it = [p["iteration"] for p in r["curve"]]
         for ax, key in zip(axes[:2], ("centroid", "rigid")):
-            ax.plot(it, [p["errors"]["ours"][given][key][horizon] for p in r["curve"]], marker="o", label=r["name"])
+            ax.plot(it, [prediction_figure(p["errors"], "ours", given, key, horizon) for p in r["curve"]],
+                    marker="o", label=r["name"])
         axes[2].plot(it, [max(p["kl"] or 0, 1e-4) for p in r["curve"]], marker="o", label=r["name"])
         axes[3].plot(it, [p["motion"] / p["truth_motion"] for p in r["curve"]], marker="o", label=r["name"])
+        for gap, style in zip(gaps, ("-", "--", ":", "-.")):
+            pts = [(p["iteration"], p["completion"][gap]) for p in r["curve"] if gap in p.get("completion", {})]
+            axes[4].plot([i for i, _ in pts], [c["ours"] / min(c["linear"], c["linear_vertices"]) for _, c in pts],
+                         marker="o", ls=style, label=f"{r['name']}, gap {gap}")
     first = runs[0]["curve"][-1]["errors"]
+    what = "mean of u1/u3 x h5/h10/h15" if horizon == "mean" else f"h{horizon} {given}"
     for ax, key in zip(axes[:2], ("centroid", "rigid")):
         for m, style in (("zero_velocity", "k--"), ("linear_acap", "k:")):
-            ax.axhline(first[m][given][key][horizon], color="k", ls=style[1:], label=m)
-        ax.set_title(f"validation error h{horizon} {given} ({key}), x1e-4")
-        ax.set_xlabel("iteration")
+            ax.axhline(prediction_figure(first, m, given, key, horizon), color="k", ls=style[1:], label=m)
+        ax.set_title(f"validation error, {what} ({key}), x1e-4", fontsize=9)
     axes[2].set_yscale("log")
     axes[2].set_title("KL (nats)")
     axes[3].axhline(1.0, color="k", ls="--", label="ground truth")
     axes[3].set_title("motion level / ground truth's")
+    if gaps:
+        axes[4].axhline(1.0, color="k", ls="--", label="linear interpolation")
+        axes[4].set_title("completion: ours / better linear interpolation")
+        axes[4].legend(fontsize=7)
     for ax in axes:
         ax.set_xlabel("iteration")
         ax.grid(alpha=0.3)
@@ -360,6 +383,8 @@ def main(argv=None) -> None:
     p.add_argument("--plot", nargs="*", default=None, help="plot these result JSONs instead of training")
     p.add_argument("-o", "--output", default=None, help="PNG for --plot")
     p.add_argument("--given", default="u3")
+    p.add_argument("--horizon", default="15", choices=("5", "10", "15", "mean"),
+                   help="--plot: the horizon of the error panels; mean: Table 1's six cells")
     p.add_argument("--summary", nargs="*", default=None, help="print a Markdown table of these result JSONs")
     args = p.parse_args(argv)
     args.argv = argv
@@ -367,7 +392,7 @@ def main(argv=None) -> None:
         print(summary_table(args.summary))
         return
     if args.plot is not None:
-        plot(args.plot, args.output or "study.png", args.given)
+        plot(args.plot, args.output or "study.png", args.given, args.horizon)
         return
     args.name = args.name or args.recipe
     run_study(args)
