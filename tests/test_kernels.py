@@ -18,6 +18,13 @@ def ring():
     return NeighborMean(Topology.from_faces(seq.faces, seq.n_vertices))
 
 
+@pytest.fixture(scope="module")
+def big_ring():
+    """Enough vertices (2880) that each of the kernel's 64 vertex chunks spans several 16-vertex blocks."""
+    seq = twisting_limb(frames=2, rings=60, segments=48)
+    return NeighborMean(Topology.from_faces(seq.faces, seq.n_vertices))
+
+
 def plain_layer(x, ws, wr, b, ring, act, residual):
     """``act(W_s x + A (W_r x) + b) [+ r]`` with a dense ``A``, plain autograd, ``x`` ``(V, C, B)``."""
     A = ring.A.to_dense()
@@ -64,8 +71,30 @@ def test_fused_layer_matches_plain_autograd(ring, windows, act, residual, path, 
         assert err <= 1e-5, f"{path} {name}: relative error {err:.2e}"
 
 
-def test_cpu_kernel_gradients_have_the_same_bits_with_any_thread_count(ring):
+# (9, 9): the channel counts the kernel knows at compile time (ACAP's); others at run time
+@pytest.mark.parametrize("c_in,c_out", [(9, 9), (4, 6), (7, 5)])
+@pytest.mark.parametrize("windows", [8, 16, 19])
+@pytest.mark.parametrize("act", [True, False])
+def test_cpu_kernel_matches_plain_autograd_for_any_channels_on_a_larger_mesh(big_ring, c_in, c_out, windows, act):
     assert kernels.cpu_kernels_available()
+    assert big_ring.n_vertices > 64 * 16 * 2
+    torch.manual_seed(c_in + windows)
+    V = big_ring.n_vertices
+    x, gy = torch.randn(V, c_in, windows), torch.randn(V, c_out, windows)
+    ws, wr, b = 0.4 * torch.randn(c_out, c_in), 0.4 * torch.randn(c_out, c_in), torch.randn(c_out)
+    r = None if act else torch.randn(V, c_out, windows)
+    y, grads = layer_and_grads(MeshConvFused.apply, x, ws, wr, b, big_ring, act, r, gy)
+    y_ref, grads_ref = layer_and_grads(plain_layer, x, ws, wr, b, big_ring, act, r, gy)
+    torch.testing.assert_close(y, y_ref, atol=2e-6, rtol=1e-5)
+    for name, g, g_ref in zip(["x", "w_self", "w_ring", "bias", "residual"], grads, grads_ref):
+        err = float((g - g_ref).norm() / g_ref.norm())
+        assert err <= 1e-5, f"{name}: relative error {err:.2e}"
+
+
+@pytest.mark.parametrize("mesh", ["ring", "big_ring"])
+def test_cpu_kernel_gradients_have_the_same_bits_with_any_thread_count(mesh, request):
+    assert kernels.cpu_kernels_available()
+    ring = request.getfixturevalue(mesh)
     torch.manual_seed(0)
     V, C = ring.n_vertices, 9
     x, gy = torch.randn(V, C, 16), torch.randn(V, C, 16)

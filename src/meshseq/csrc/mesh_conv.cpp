@@ -85,9 +85,11 @@ inline void own_and_ring(const float* a, Csr M, int64_t v, int C, int B, int b0,
 }
 
 // T: a tile of W windows
-template <typename T, int W>
+// CI, CO: the channel counts when known at compile time (0: at run time, ci and co)
+template <typename T, int W, int CI, int CO>
 void forward_tiles(const float* X, float* Y, const float* Ws, const float* Wr, const float* bias,
-                   Csr A, const float* R, int64_t V, int Ci, int Co, int B, bool act) {
+                   Csr A, const float* R, int64_t V, int ci, int co, int B, bool act) {
+  const int Ci = CI ? CI : ci, Co = CO ? CO : co;
   const int64_t ys = int64_t(Co) * B;
   at::parallel_for(0, V, 128, [&](int64_t v0, int64_t v1) {
     T ax[CMAX], xv[CMAX];
@@ -116,32 +118,63 @@ void tanh_grad_tiles(const float* gy, const float* y, float* g, int64_t n) {
   });
 }
 
-// partial: (NCHUNK, 2 Co Ci + Co) sums of gWs, gWr, gb per vertex chunk
-template <typename T, int W>
+// partial: (NCHUNK, 2 Co Ci + Co) sums of gWs, gWr, gb per vertex chunk. A few vertices (SUB) at a
+// time: pass 1 forms gx and keeps their A^T g in a small buffer; pass 2 forms their weight-gradient
+// sums with register accumulators (OG output channels x Ci inputs at a time), instead of a
+// read-modify-write of all 2 Co Ci + Co sums in memory per vertex (store-bound: a 64-byte store
+// takes two cycles on AMD Zen 4). Each sum still adds the vertices in order within a chunk.
+// CI, CO: the channel counts when known at compile time (0: at run time, ci and co).
+template <typename T, int W, int CI, int CO>
 void backward_tiles(const float* G, const float* X, float* GX, const float* Ws, const float* Wr,
-                    Csr At, float* partial, int64_t V, int Ci, int Co, int B) {
-  const int64_t xs = int64_t(Ci) * B;
+                    Csr At, float* partial, int64_t V, int ci, int co, int B) {
+  constexpr int SUB = 16, OG = (CO > 0 && CO % 3 == 0) ? 3 : 1, CIN = CI > 0 ? CI : CMAX;
+  const int Ci = CI ? CI : ci, Co = CO ? CO : co;
+  const int64_t xs = int64_t(Ci) * B, gs = int64_t(Co) * B;
   const int n_sums = 2 * Co * Ci + Co;
   at::parallel_for(0, NCHUNK, 1, [&](int64_t k0, int64_t k1) {
     T sums[2 * CMAX * CMAX + CMAX];
-    T atg[CMAX], gv[CMAX];
+    T atgbuf[SUB * CMAX];  // A^T g of the SUB vertices
     for (int64_t chunk = k0; chunk < k1; ++chunk) {
       for (int i = 0; i < n_sums; ++i) sums[i] = T{};
       const int64_t v0 = V * chunk / NCHUNK, v1 = V * (chunk + 1) / NCHUNK;
-      for (int64_t v = v0; v < v1; ++v) {
-        for (int b0 = 0; b0 < B; b0 += W) {
-          own_and_ring(G, At, v, Co, B, b0, gv, atg);
-          for (int c = 0; c < Ci; ++c) {
-            T s = T{};
-            for (int o = 0; o < Co; ++o) s += Ws[o * Ci + c] * gv[o] + Wr[o * Ci + c] * atg[o];
-            store(GX + v * xs + c * B + b0, s);
-            const T xc = load<T>(X + v * xs + c * B + b0);
-            for (int o = 0; o < Co; ++o) {
-              sums[o * Ci + c] += gv[o] * xc;
-              sums[Co * Ci + o * Ci + c] += atg[o] * xc;
+      for (int b0 = 0; b0 < B; b0 += W) {
+        for (int64_t vs = v0; vs < v1; vs += SUB) {
+          const int n = int(std::min<int64_t>(SUB, v1 - vs));
+          for (int i = 0; i < n; ++i) {  // pass 1: gx = Ws^T g + Wr^T (A^T g)
+            const int64_t v = vs + i;
+            T gv[CMAX], atg[CMAX];
+            own_and_ring(G, At, v, Co, B, b0, gv, atg);
+            for (int c = 0; c < Ci; ++c) {
+              T s = T{};
+              for (int o = 0; o < Co; ++o) s += Ws[o * Ci + c] * gv[o] + Wr[o * Ci + c] * atg[o];
+              store(GX + v * xs + c * B + b0, s);
+            }
+            for (int o = 0; o < Co; ++o) atgbuf[i * Co + o] = atg[o];
+          }
+          for (int ring = 0; ring < 2; ++ring) {  // pass 2: gWs += g x^T, gWr += (A^T g) x^T
+            T* S = sums + ring * Co * Ci;
+            for (int o0 = 0; o0 < Co; o0 += OG) {
+              const int og = std::min(OG, Co - o0);
+              T acc[OG][CIN];
+              for (int j = 0; j < og; ++j)
+                for (int c = 0; c < Ci; ++c) acc[j][c] = S[(o0 + j) * Ci + c];
+              for (int i = 0; i < n; ++i) {
+                const int64_t v = vs + i;
+                T gj[OG];
+                for (int j = 0; j < og; ++j)
+                  gj[j] = ring ? atgbuf[i * Co + o0 + j] : load<T>(G + v * gs + (o0 + j) * B + b0);
+                for (int c = 0; c < Ci; ++c) {
+                  const T xc = load<T>(X + v * xs + c * B + b0);
+                  for (int j = 0; j < og; ++j) acc[j][c] += gj[j] * xc;
+                }
+              }
+              for (int j = 0; j < og; ++j)
+                for (int c = 0; c < Ci; ++c) S[(o0 + j) * Ci + c] = acc[j][c];
             }
           }
-          for (int o = 0; o < Co; ++o) sums[2 * Co * Ci + o] += gv[o];
+          T* gb = sums + 2 * Co * Ci;  // gb += g
+          for (int i = 0; i < n; ++i)
+            for (int o = 0; o < Co; ++o) gb[o] += load<T>(G + (vs + i) * gs + o * B + b0);
         }
       }
       for (int i = 0; i < n_sums; ++i) partial[chunk * n_sums + i] = lanes_sum(sums[i]);
@@ -185,8 +218,9 @@ torch::Tensor conv_forward(torch::Tensor x_in, torch::Tensor w_self, torch::Tens
     tiles(x.data_ptr<float>(), y.data_ptr<float>(), ws.data_ptr<float>(), wr.data_ptr<float>(), b.data_ptr<float>(),
           csr(rowptr, col, weight), R, V, Ci, Co, B, act);
   };
-  if (W == 16) run(forward_tiles<v16, 16>);
-  else run(forward_tiles<v8, 8>);
+  const bool nine = Ci == 9 && Co == 9;  // ACAP's 9 channels: sizes known to the compiler (1.4x faster)
+  if (W == 16) nine ? run(forward_tiles<v16, 16, 9, 9>) : run(forward_tiles<v16, 16, 0, 0>);
+  else nine ? run(forward_tiles<v8, 8, 9, 9>) : run(forward_tiles<v8, 8, 0, 0>);
   return B == B_in ? y : y.narrow(2, 0, B_in).contiguous();
 }
 
@@ -216,8 +250,9 @@ std::vector<torch::Tensor> conv_backward(torch::Tensor gy, std::optional<torch::
     tiles(g.data_ptr<float>(), x.data_ptr<float>(), gx.data_ptr<float>(), ws.data_ptr<float>(), wr.data_ptr<float>(),
           csr(rowptr_t, col_t, weight_t), partial.data(), V, Ci, Co, B);
   };
-  if (W == 16) run(backward_tiles<v16, 16>);
-  else run(backward_tiles<v8, 8>);
+  const bool nine = Ci == 9 && Co == 9;
+  if (W == 16) nine ? run(backward_tiles<v16, 16, 9, 9>) : run(backward_tiles<v16, 16, 0, 0>);
+  else nine ? run(backward_tiles<v8, 8, 9, 9>) : run(backward_tiles<v8, 8, 0, 0>);
   auto sums = torch::empty({n_sums}, x.options());
   float* s = sums.data_ptr<float>();
   for (int i = 0; i < n_sums; ++i) {
