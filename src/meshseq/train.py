@@ -538,6 +538,13 @@ def autocast(device: torch.device, precision: str):
     return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
 
 
+def fused_adam(device) -> bool:
+    """Adam's update as one fused pass per tensor (CPU and CUDA) instead of about eight passes of
+    ``foreach`` operators over the parameters and moments (the FC weight's four 39 MB tensors on
+    the horse): the same arithmetic, read and written once."""
+    return torch.device(device).type in ("cpu", "cuda")
+
+
 def resolve_device(device: str) -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -950,7 +957,8 @@ def train(
     groups = parameter_groups(model, config)
     names = [n for g in groups for n in g["names"]]  # in the optimizer's order
     optimizer = torch.optim.Adam([{k: v for k, v in g.items() if k != "names"} for g in groups],
-                                 lr=config.lr, betas=(0.9, float(config.adam_beta2)))
+                                 lr=config.lr, betas=(0.9, float(config.adam_beta2)),
+                                 fused=fused_adam(dev))
     start = 0
     own_rng = False
     grad_history = collections.deque(maxlen=GRAD_CLIP_HISTORY)  # the last unclipped gradient norms
