@@ -154,7 +154,7 @@ void backward_tiles(const float* G, const float* X, float* GX, const float* Ws, 
           for (int ring = 0; ring < 2; ++ring) {  // pass 2: gWs += g x^T, gWr += (A^T g) x^T
             T* S = sums + ring * Co * Ci;
             for (int o0 = 0; o0 < Co; o0 += OG) {
-              const int og = std::min(OG, Co - o0);
+              const int og = CO > 0 ? OG : std::min(OG, Co - o0);  // a constant when CO is: registers
               T acc[OG][CIN];
               for (int j = 0; j < og; ++j)
                 for (int c = 0; c < Ci; ++c) acc[j][c] = S[(o0 + j) * Ci + c];
