@@ -30,7 +30,14 @@ namespace {
 typedef float v16 __attribute__((vector_size(64)));
 typedef float v8 __attribute__((vector_size(32)));
 
-template <typename T> inline T splat(float s) { return T{} + s; }
+// s in every lane: one broadcast (`T{} + s`, as this was, compiled to an add and a broadcast:
+// 0 + s cannot be folded to s, because of s = -0; in the FC products that tripled the instructions
+// per multiply-add)
+template <typename T> inline T splat(float s) {
+  T r;
+  for (int l = 0; l < int(sizeof(T) / sizeof(float)); ++l) r[l] = s;
+  return r;
+}
 template <typename T> inline T load(const float* p) { T r; __builtin_memcpy(&r, p, sizeof(T)); return r; }
 template <typename T> inline void store(float* p, T v) { __builtin_memcpy(p, &v, sizeof(T)); }
 
@@ -52,7 +59,7 @@ inline void wx_rows(const float* Wm, int64_t N, const float* X, int64_t l0, int6
     for (int i = 0; i < LB; ++i) w[i] = Wm + (l0 + i) * N;
     for (int64_t n = n0; n < n1; ++n) {
       const T xv = load<T>(X + n * B + b0);
-      for (int i = 0; i < LB; ++i) acc[i] += splat<T>(w[i][n]) * xv;
+      for (int i = 0; i < LB; ++i) acc[i] += w[i][n] * xv;  // the weight broadcast inside the multiply-add
     }
     for (int i = 0; i < LB; ++i) store(partial + (l0 + i) * B + b0, acc[i]);
   }
@@ -83,7 +90,7 @@ inline void wtx_cols(const float* Wm, int64_t L, int64_t N, const float* H, cons
       const T hv = load<T>(H + l * B + b0);
       const float* w = Wm + l * N + n0;
       __builtin_prefetch(w + PREFETCH, 0, 0);
-      for (int j = 0; j < NB; ++j) acc[j] += splat<T>(w[j]) * hv;
+      for (int j = 0; j < NB; ++j) acc[j] += w[j] * hv;
     }
     for (int j = 0; j < NB; ++j) {
       if (bias) acc[j] += bias[n0 + j];
