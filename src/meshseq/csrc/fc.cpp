@@ -144,11 +144,15 @@ torch::Tensor fc_wx(torch::Tensor weight, torch::Tensor x, std::optional<torch::
   const float* p = partial.data_ptr<float>();
   float* o = out.data_ptr<float>();
   const float* b = bias.has_value() ? bias->data_ptr<float>() : nullptr;
-  for (int64_t i = 0; i < L * B; ++i) {
-    float s = 0.f;
-    for (int64_t k = 0; k < nchunks; ++k) s += p[k * L * B + i];
-    o[i] = b ? s + b[i / B] : s;
+  // the chunks' partial sums in chunk order (the same bits with any thread count), chunk by
+  // chunk over all L x B outputs: contiguous, vectorised rows instead of a strided scalar sum
+  for (int64_t i = 0; i < L * B; ++i) o[i] = 0.f;
+  for (int64_t k = 0; k < nchunks; ++k) {
+    const float* pk = p + k * L * B;
+    for (int64_t i = 0; i < L * B; ++i) o[i] += pk[i];
   }
+  if (b)
+    for (int64_t i = 0; i < L * B; ++i) o[i] += b[i / B];
   return out;
 }
 
