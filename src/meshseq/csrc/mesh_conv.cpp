@@ -34,14 +34,10 @@ typedef float v8 __attribute__((vector_size(32)));
 constexpr int CMAX = 16;    // most channels a layer may have
 constexpr int NCHUNK = 64;  // vertex chunks of the weight-gradient sums
 
-// s in every lane: one broadcast (`T{} + s`, as this was, compiled to an add and a broadcast:
+// s in every lane: one broadcast. (`T{} + s`, as this was, compiled to an add and a broadcast:
 // 0 + s cannot be folded to s, because of s = -0; in the FC products that tripled the instructions
-// per multiply-add)
-template <typename T> inline T splat(float s) {
-  T r;
-  for (int l = 0; l < int(sizeof(T) / sizeof(float)); ++l) r[l] = s;
-  return r;
-}
+// per multiply-add. s - 0 is s for every s; a lane-by-lane loop compiled to 16 masked broadcasts.)
+template <typename T> inline T splat(float s) { return s - T{}; }
 template <typename T> inline T load(const float* p) { T r; __builtin_memcpy(&r, p, sizeof(T)); return r; }
 template <typename T> inline void store(float* p, T v) { __builtin_memcpy(p, &v, sizeof(T)); }
 template <typename T> inline float lanes_sum(T v) {
