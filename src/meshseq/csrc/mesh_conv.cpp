@@ -38,8 +38,15 @@ constexpr int NCHUNK = 64;  // vertex chunks of the weight-gradient sums
 // 0 + s cannot be folded to s, because of s = -0; in the FC products that tripled the instructions
 // per multiply-add. s - 0 is s for every s; a lane-by-lane loop compiled to 16 masked broadcasts.)
 template <typename T> inline T splat(float s) { return s - T{}; }
-template <typename T> inline T load(const float* p) { T r; __builtin_memcpy(&r, p, sizeof(T)); return r; }
-template <typename T> inline void store(float* p, T v) { __builtin_memcpy(p, &v, sizeof(T)); }
+// unaligned vectors of floats: loads and stores typed as float data (a memcpy store may alias
+// anything, so the compiler reloaded every captured pointer and flag after each store)
+typedef float v16u __attribute__((vector_size(64), aligned(4)));
+typedef float v8u __attribute__((vector_size(32), aligned(4)));
+template <typename T> struct unaligned;
+template <> struct unaligned<v16> { typedef v16u type; };
+template <> struct unaligned<v8> { typedef v8u type; };
+template <typename T> inline T load(const float* p) { return *reinterpret_cast<const typename unaligned<T>::type*>(p); }
+template <typename T> inline void store(float* p, T v) { *reinterpret_cast<typename unaligned<T>::type*>(p) = v; }
 template <typename T> inline float lanes_sum(T v) {
   float s = 0.f;
   for (int l = 0; l < int(sizeof(T) / sizeof(float)); ++l) s += v[l];
