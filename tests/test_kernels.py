@@ -7,7 +7,7 @@ import torch
 
 from meshseq import kernels
 from meshseq.data.synthetic import twisting_limb
-from meshseq.kernels import MeshConvFused
+from meshseq.kernels import MeshConvFused, MeshConvStack
 from meshseq.mesh import Topology
 from meshseq.model import NeighborMean
 
@@ -89,6 +89,45 @@ def test_cpu_kernel_matches_plain_autograd_for_any_channels_on_a_larger_mesh(big
     for name, g, g_ref in zip(["x", "w_self", "w_ring", "bias", "residual"], grads, grads_ref):
         err = float((g - g_ref).norm() / g_ref.norm())
         assert err <= 1e-5, f"{name}: relative error {err:.2e}"
+
+
+# the encoder's stack (tanh after each layer) and the decoder's (tanh, tanh, linear + residual)
+@pytest.mark.parametrize("acts,residual", [((True, True, True), False), ((True, True, False), True),
+                                           ((False, True), False)])
+@pytest.mark.parametrize("path", ["cpp", "torch"])
+def test_conv_stack_matches_plain_autograd_layer_by_layer(big_ring, acts, residual, path, monkeypatch):
+    """MeshConvStack's backward hands the layers below the top their pre-activation gradients
+    (the input gradient times 1 - x^2 written by the layer above): the same gradients as plain
+    autograd through the layers one by one."""
+    if path == "torch":
+        monkeypatch.setattr(kernels, "_cpu_kernels", False)
+    else:
+        assert kernels.cpu_kernels_available()
+    torch.manual_seed(len(acts) + residual)
+    V, C, B = big_ring.n_vertices, 9, 16
+    x, gy = torch.randn(V, C, B), torch.randn(V, C, B)
+    r = torch.randn(V, C, B) if residual else None
+    params = [t for _ in acts for t in (0.4 * torch.randn(C, C), 0.4 * torch.randn(C, C), torch.randn(C))]
+
+    def run(stack):
+        leaves = [t.detach().clone().requires_grad_() for t in [x] + params]
+        res = None if r is None else r.detach().clone().requires_grad_()
+        if stack:
+            y = MeshConvStack.apply(leaves[0], res, big_ring, acts, *leaves[1:])
+        else:
+            y = leaves[0]
+            for k, act in enumerate(acts):
+                last = k == len(acts) - 1
+                y = plain_layer(y, *leaves[1 + 3 * k: 4 + 3 * k], big_ring, act, res if last else None)
+        grads = torch.autograd.grad(y, leaves + ([res] if res is not None else []), gy)
+        return y.detach(), grads
+
+    (y, grads), (y_ref, grads_ref) = run(True), run(False)
+    torch.testing.assert_close(y, y_ref, atol=2e-6, rtol=1e-5)
+    assert len(grads) == len(grads_ref) == 1 + len(params) + residual
+    for i, (g, g_ref) in enumerate(zip(grads, grads_ref)):
+        err = float((g - g_ref).norm() / g_ref.norm())
+        assert err <= 1e-5, f"{path}: gradient {i} relative error {err:.2e}"
 
 
 @pytest.mark.parametrize("mesh", ["ring", "big_ring"])

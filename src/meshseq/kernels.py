@@ -227,6 +227,40 @@ def ring_mean(ring, x: torch.Tensor, transpose: bool = False) -> torch.Tensor:
     return out.view(x.shape)
 
 
+def _layer_forward(x, w_self, w_ring, bias, ring, act: bool, residual, cpp: bool) -> torch.Tensor:
+    """One layer ``act(W_s x + W_r (A x) + b) [+ residual]`` on contiguous ``(V, C_in, B)``."""
+    if cpp:
+        A = ring.A
+        return torch.ops.meshseq.conv_forward(x, w_self, w_ring, bias, A.crow_indices(), A.col_indices(),
+                                              A.values(), act, residual)
+    y = torch.matmul(w_self, x).add_(torch.matmul(w_ring, ring_mean(ring, x))).add_(bias[:, None])
+    if act:
+        y.tanh_()
+    if residual is not None:
+        y.add_(residual)
+    return y
+
+
+def _layer_backward(g, y, x, w_self, w_ring, ring, input_tanh: bool, cpp: bool):
+    """``(gx, g_w_self, g_w_ring, g_bias)`` of one layer from ``g``, the gradient of its output;
+    ``y``: its output when it has tanh (``g`` is then multiplied by ``1 - y^2`` first), None when it
+    has none or ``g`` is already its pre-activation's gradient; ``input_tanh``: ``x`` is a tanh
+    output, and ``gx`` comes back times ``1 - x^2`` (the layer below's pre-activation gradient)."""
+    if cpp:
+        At = ring.At
+        return torch.ops.meshseq.conv_backward(g.contiguous(), y, x, w_self, w_ring, At.crow_indices(),
+                                               At.col_indices(), At.values(), input_tanh)
+    if y is not None:
+        g = torch.ops.aten.tanh_backward(g, y)
+    atg = ring_mean(ring, g.contiguous(), transpose=True)  # dL/d(A x)
+    gx = torch.matmul(w_self.t(), g).add_(torch.matmul(w_ring.t(), atg))
+    if input_tanh:
+        gx = torch.ops.aten.tanh_backward(gx, x)
+    gws = torch.einsum("vob,vcb->oc", g, x)
+    gwr = torch.einsum("vob,vcb->oc", atg, x)
+    return gx, gws, gwr, g.sum((0, 2))
+
+
 class MeshConvFused(torch.autograd.Function):
     """``y = act(W_s x + W_r (A x) + b) [+ residual]`` on ``(V, C_in, B)`` -> ``(V, C_out, B)``.
 
@@ -244,16 +278,7 @@ class MeshConvFused(torch.autograd.Function):
             raise ValueError("MeshConvFused: a residual after tanh is not supported")
         x = x.contiguous()
         cpp = _use_cpu_kernels(x)
-        if cpp:
-            A = ring.A
-            y = torch.ops.meshseq.conv_forward(x, w_self, w_ring, bias, A.crow_indices(), A.col_indices(),
-                                               A.values(), act, residual)
-        else:
-            y = torch.matmul(w_self, x).add_(torch.matmul(w_ring, ring_mean(ring, x))).add_(bias[:, None])
-            if act:
-                y.tanh_()
-            if residual is not None:
-                y.add_(residual)
+        y = _layer_forward(x, w_self, w_ring, bias, ring, act, residual, cpp)
         ctx.ring, ctx.act, ctx.cpp, ctx.has_residual = ring, act, cpp, residual is not None
         ctx.save_for_backward(x, w_self, w_ring, y if act else None)
         return y
@@ -262,17 +287,55 @@ class MeshConvFused(torch.autograd.Function):
     def backward(ctx, gy):
         x, w_self, w_ring, y = ctx.saved_tensors
         gres = gy if ctx.has_residual else None
-        if ctx.cpp:
-            At = ctx.ring.At
-            gx, gws, gwr, gb = torch.ops.meshseq.conv_backward(gy.contiguous(), y, x, w_self, w_ring,
-                                                               At.crow_indices(), At.col_indices(), At.values())
-            return gx, gws, gwr, gb, None, None, gres
-        g = torch.ops.aten.tanh_backward(gy, y) if ctx.act else gy
-        atg = ring_mean(ctx.ring, g.contiguous(), transpose=True)  # dL/d(A x)
-        gx = torch.matmul(w_self.t(), g).add_(torch.matmul(w_ring.t(), atg))
-        gws = torch.einsum("vob,vcb->oc", g, x)
-        gwr = torch.einsum("vob,vcb->oc", atg, x)
-        return gx, gws, gwr, g.sum((0, 2)), None, None, gres
+        gx, gws, gwr, gb = _layer_backward(gy, y, x, w_self, w_ring, ctx.ring, False, ctx.cpp)
+        return gx, gws, gwr, gb, None, None, gres
+
+
+class MeshConvStack(torch.autograd.Function):
+    """Several fused layers in a row as one autograd node: ``x`` ``(V, C, B)`` through layer k =
+    ``act_k(W_s x + W_r (A x) + b_k)``, ``residual`` ``(V, C_out, B)`` (or None) added after the last
+    (whose ``act`` must then be False).
+
+    ``params``: ``w_self, w_ring, bias`` of each layer in order; ``acts``: a tuple of bools, one
+    per layer. The same arithmetic as ``MeshConvFused`` layer by layer; the backward differs in one
+    place: a layer whose input is the previous layer's tanh output returns its input gradient
+    already times ``1 - x^2`` (the C++ kernel multiplies while it writes it), so the layers below
+    the top need no tanh-derivative pass of their own over (gradient, output).
+    """
+
+    @staticmethod
+    @torch.autocast("cpu", enabled=False)
+    @torch.autocast("cuda", enabled=False)
+    def forward(ctx, x, residual, ring, acts: tuple, *params):
+        K = len(acts)
+        if len(params) != 3 * K:
+            raise ValueError(f"MeshConvStack: {K} layers need {3 * K} parameters, got {len(params)}")
+        if acts[-1] and residual is not None:
+            raise ValueError("MeshConvStack: a residual after tanh is not supported")
+        x = x.contiguous()
+        cpp = _use_cpu_kernels(x)
+        inputs = []
+        for k in range(K):
+            inputs.append(x)
+            x = _layer_forward(x, *params[3 * k: 3 * k + 3], ring, acts[k], residual if k == K - 1 else None, cpp)
+        ctx.ring, ctx.acts, ctx.cpp, ctx.has_residual = ring, tuple(acts), cpp, residual is not None
+        ctx.save_for_backward(*inputs, x if acts[-1] else None, *params)
+        return x
+
+    @staticmethod
+    def backward(ctx, gy):
+        K = len(ctx.acts)
+        saved = ctx.saved_tensors
+        inputs, y_top, params = saved[:K], saved[K], saved[K + 1:]
+        grads: list = [None] * (3 * K)
+        g = gy
+        for k in reversed(range(K)):
+            w_self, w_ring = params[3 * k], params[3 * k + 1]
+            y = y_top if k == K - 1 else None  # below the top, g is already the pre-activation's gradient
+            input_tanh = k > 0 and ctx.acts[k - 1]
+            g, gws, gwr, gb = _layer_backward(g, y, inputs[k], w_self, w_ring, ctx.ring, input_tanh, ctx.cpp)
+            grads[3 * k: 3 * k + 3] = [gws, gwr, gb]
+        return (g, gy if ctx.has_residual else None, None, None, *grads)
 
 
 _ALLOCATOR_TUNED = False

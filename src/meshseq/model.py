@@ -33,9 +33,10 @@ Variants (``ModelConfig.variant``):
 
 Mesh convolution (paper Eq. 2): ``y_i = W1 x_i + W2 mean_{j in N(i)} x_j + b``, the 1-ring mean
 by a padded gather (``conv_impl="gather"``) or a row-normalised sparse matrix (``"sparse"``).
-``MeshConv.forward`` is the readable reference; ``rollout`` runs every conv layer as
-``meshseq.kernels.MeshConvFused`` (the fast path: one fused layer with a hand-written backward,
-a C++ kernel on CPU; see that module), equal to the reference to float32 rounding.
+``MeshConv.forward`` is the readable reference; ``rollout`` runs the encoder's and the decoder's
+conv layers as one ``meshseq.kernels.MeshConvStack`` each (the fast path: fused layers with a
+hand-written backward, a C++ kernel on CPU; see that module), equal to the reference to float32
+rounding.
 
 Layout: inside, frames are vertex-major ``(V, C, B)`` (vertex, channel, window): a vertex's
 channels of all windows are one contiguous block (what the ring mean gathers), and the flattened
@@ -53,7 +54,7 @@ import torch
 from torch import nn
 
 from meshseq.errors import MeshseqError
-from meshseq.kernels import MeshConvFused, fc_product, fc_transposed_product
+from meshseq.kernels import MeshConvStack, fc_product, fc_transposed_product
 from meshseq.mesh import Topology
 
 VARIANTS = ("bd", "std-bd", "uni")
@@ -419,7 +420,7 @@ class _FC:
     """The big FC weight (and decoder bias) of one roll-out; with ``deferred`` (training) its
     weight gradient is formed once, after all steps.
 
-    ``fused``: the roll-out's conv layers run as ``kernels.MeshConvFused`` (the fast path), with
+    ``fused``: the roll-out's conv layers run as ``kernels.MeshConvStack`` (the fast path), with
     the channel maps of every encoder and decoder layer sliced from the parameters once per
     roll-out; otherwise ``MeshConv.forward`` (the reference).
     """
@@ -530,8 +531,7 @@ class BDLSTM(nn.Module):
         if self.config.input_norm:
             x = (x - self.input_offset.permute(1, 0, 2)) / self.input_spread.view(1, -1, 1)
         if fc.fused:
-            for w_self, w_ring, b in fc.enc:
-                x = MeshConvFused.apply(x, w_self, w_ring, b, fc.ring, True, None)
+            x = MeshConvStack.apply(x, None, fc.ring, (True,) * len(fc.enc), *(t for layer in fc.enc for t in layer))
         else:
             for conv in self.convs:
                 x = torch.tanh(conv(x))
@@ -550,10 +550,8 @@ class BDLSTM(nn.Module):
         y = fc.decode(h).view(V, C, h.shape[0])
         K = len(self.convs)
         if fc.fused:
-            for k, (w_self, w_ring, b) in enumerate(fc.dec):
-                last = k == K - 1
-                y = MeshConvFused.apply(y, w_self, w_ring, b, fc.ring, not last, residual if last else None)
-            return y
+            acts = tuple(k < K - 1 for k in range(K))  # tanh after every layer but the last
+            return MeshConvStack.apply(y, residual, fc.ring, acts, *(t for layer in fc.dec for t in layer))
         for k in range(K):
             y = self.convs[K - 1 - k](y, transpose=True, bias=self.dec_conv_bias[k])
             if k < K - 1:

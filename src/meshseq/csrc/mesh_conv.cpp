@@ -134,9 +134,11 @@ void tanh_grad_tiles(const float* gy, const float* y, float* g, int64_t n) {
 // read-modify-write of all 2 Co Ci + Co sums in memory per vertex (store-bound: a 64-byte store
 // takes two cycles on AMD Zen 4). Each sum still adds the vertices in order within a chunk.
 // CI, CO: the channel counts when known at compile time (0: at run time, ci and co).
+// input_tanh: x is a tanh output and gx is returned times tanh's derivative 1 - x^2 (the gradient of
+// the layer below's pre-activation, which then needs no pass of its own)
 template <typename T, int W, int CI, int CO>
 void backward_tiles(const float* G, const float* X, float* GX, const float* Ws, const float* Wr,
-                    Csr At, float* partial, int64_t V, int ci, int co, int B) {
+                    Csr At, float* partial, int64_t V, int ci, int co, int B, bool input_tanh) {
   constexpr int SUB = 16, OG = (CO > 0 && CO % 3 == 0) ? 3 : 1, CIN = CI > 0 ? CI : CMAX;
   const int Ci = CI ? CI : ci, Co = CO ? CO : co;
   const int64_t xs = int64_t(Ci) * B, gs = int64_t(Co) * B;
@@ -157,6 +159,10 @@ void backward_tiles(const float* G, const float* X, float* GX, const float* Ws, 
             for (int c = 0; c < Ci; ++c) {
               T s = T{};
               for (int o = 0; o < Co; ++o) s += Ws[o * Ci + c] * gv[o] + Wr[o * Ci + c] * atg[o];
+              if (input_tanh) {
+                const T xc = load<T>(X + v * xs + c * B + b0);
+                s *= 1.0f - xc * xc;
+              }
               store(GX + v * xs + c * B + b0, s);
             }
             for (int o = 0; o < Co; ++o) atgbuf[i * Co + o] = atg[o];
@@ -234,10 +240,13 @@ torch::Tensor conv_forward(torch::Tensor x_in, torch::Tensor w_self, torch::Tens
   return B == B_in ? y : y.narrow(2, 0, B_in).contiguous();
 }
 
-// returns (gx, gWs, gWr, gb); y: the layer's output when act (tanh), else None
+// returns (gx, gWs, gWr, gb); y: the layer's output when act (tanh) and gy is the gradient of that
+// output, else None (no activation, or gy already the pre-activation's gradient); input_tanh: x is
+// a tanh output, and gx comes back times 1 - x^2
 std::vector<torch::Tensor> conv_backward(torch::Tensor gy, std::optional<torch::Tensor> y, torch::Tensor x_in,
                                          torch::Tensor w_self, torch::Tensor w_ring,
-                                         torch::Tensor rowptr_t, torch::Tensor col_t, torch::Tensor weight_t) {
+                                         torch::Tensor rowptr_t, torch::Tensor col_t, torch::Tensor weight_t,
+                                         bool input_tanh) {
   const int64_t V = rowptr_t.size(0) - 1;
   check(x_in, w_self, V);
   const int B_in = x_in.size(2), W = tile(B_in), B = (B_in + W - 1) / W * W;
@@ -258,7 +267,7 @@ std::vector<torch::Tensor> conv_backward(torch::Tensor gy, std::optional<torch::
   std::vector<float> partial(size_t(NCHUNK) * n_sums);
   auto run = [&](auto tiles) {
     tiles(g.data_ptr<float>(), x.data_ptr<float>(), gx.data_ptr<float>(), ws.data_ptr<float>(), wr.data_ptr<float>(),
-          csr(rowptr_t, col_t, weight_t), partial.data(), V, Ci, Co, B);
+          csr(rowptr_t, col_t, weight_t), partial.data(), V, Ci, Co, B, input_tanh);
   };
   const bool nine = Ci == 9 && Co == 9;
   if (W == 16) nine ? run(backward_tiles<v16, 16, 9, 9>) : run(backward_tiles<v16, 16, 0, 0>);
