@@ -335,6 +335,30 @@ class _GradBank:
         return g
 
 
+class _StackFrames(torch.autograd.Function):
+    """``torch.stack([f.permute(2, 0, 1) for f in frames], 1)``: vertex-major frames ``(V, C, B)``
+    -> ``(B, n, V, C)``, with a backward that hands each frame a contiguous vertex-major gradient.
+
+    (Plain ``stack`` gives each frame a strided view of the ``(B, n, V, C)`` gradient; adding it to
+    the frame's other gradients, from the encoder and the residual, then ran on strided memory:
+    1.3 ms an add on the horse against 0.35 for contiguous tensors, and a copy of 1.3 ms more.)
+    """
+
+    @staticmethod
+    def forward(ctx, *frames):
+        return torch.stack([f.permute(2, 0, 1) for f in frames], 1)
+
+    @staticmethod
+    def backward(ctx, g):
+        return tuple(g[:, i].permute(1, 2, 0).contiguous() if ctx.needs_input_grad[i] else None
+                     for i in range(g.shape[1]))
+
+
+def stack_frames(frames: list[torch.Tensor]) -> torch.Tensor:
+    """Vertex-major frames ``(V, C, B)`` (a roll-out's steps) -> ``(B, n, V, C)``, contiguous."""
+    return _StackFrames.apply(*frames)
+
+
 class _WeightGate(torch.autograd.Function):
     """The FC weight for one roll-out; its backward hands over the collected gradient.
 
@@ -633,7 +657,7 @@ class BDLSTM(nn.Module):
             mus.append(mu)
             logvars.append(logvar)
         # (B, n, V, C), contiguous: one copy, and the loss then reads it in its own layout
-        out = torch.stack([f.permute(2, 0, 1) for f in frames], 1)
+        out = stack_frames(frames)
         if steps:
             return out, torch.stack(mus), torch.stack(logvars), state
         empty = first.new_zeros(0, first.shape[0], self.config.latent)
