@@ -35,6 +35,7 @@ backward of a matmul is two matmuls of the same size: input and weight gradients
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import statistics
@@ -51,7 +52,7 @@ from meshseq.mesh import Topology
 from meshseq import kernels
 from meshseq.kernels import MeshConvFused, keep_freed_memory, ring_mean
 from meshseq.model import BDLSTM, ModelConfig, NeighborMean, count_step_flops
-from meshseq.train import TrainConfig, WindowLoss, autocast, fused_adam, resolve_device
+from meshseq.train import TrainConfig, WindowLoss, autocast, freeze_setup_objects, fused_adam, resolve_device
 
 DEFAULT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "horse-gallop.npz"
 
@@ -286,7 +287,12 @@ def main() -> None:
               f"{flops / 1e9:.1f} GFLOP per iteration (forward {fwd / 1e9:.1f}; "
               + ", ".join(f"{k} {100 * v:.0f}%" for k, v in share.items()) + ")")
         its = {v: make_iteration(cfg, topo, frames, sampler, rng, device, args.batch, *VARIANTS[v]) for v in variants}
-        timings = measure_ab(its, device, args.iterations)
+        frozen = freeze_setup_objects()  # as meshseq train does before its first iteration
+        try:
+            timings = measure_ab(its, device, args.iterations)
+        finally:
+            if frozen:
+                gc.unfreeze()
         peak_after = matmul_gflops(device, repeat=3)
         print(f"[{impl}] float32 matmul after the iterations: {peak_after:.1f} GFLOP/s; load average "
               f"{os.getloadavg()[0]:.1f}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import gc
 import math
 
 import numpy as np
@@ -17,7 +18,8 @@ from meshseq.data.synthetic import twisting_limb
 from meshseq.data.windows import WindowSampler, heldout_rows, split_frames, window_starts
 from meshseq.errors import MeshseqError
 from meshseq.io import save_sequence
-from meshseq.train import TrainConfig, WindowLoss, load_training_data, train, window_losses
+from meshseq.train import (TrainConfig, WindowLoss, freeze_setup_objects, load_training_data, train,
+                           window_losses)
 
 SMALL = {"latent": 16, "lstm_layers": 2}
 
@@ -140,6 +142,30 @@ def test_other_variants_train(tmp_path, variant):
     assert all(float(r["kl"]) >= 0 for r in rows)
     if variant == "uni":
         assert all(float(r["bd"]) == 0.0 for r in rows) and rows[-1]["heldout_bd"] == ""
+
+
+def test_training_freezes_the_setup_objects_for_the_collector_and_unfreezes_after(tmp_path, monkeypatch):
+    """The objects alive before the first iteration are exempt from the cyclic collector while
+    training runs (``freeze_setup_objects``) and given back after, also when training fails."""
+    assert gc.get_freeze_count() == 0
+    seen = []
+    real_step = torch.optim.Adam.step
+
+    def step(self, *a, **kw):
+        seen.append(gc.get_freeze_count())
+        return real_step(self, *a, **kw)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", step)
+    _, data = limb_data(frames=24)
+    cfg = TrainConfig(iterations=2, window=6, batch=2, eval_every=0, checkpoint_every=0, log_every=0, w_kl=0.0)
+    train(data, tmp_path / "run", cfg, SMALL, device="cpu", progress=False, log=None)
+    assert len(seen) == 2 and min(seen) > 10_000  # modules, tensors, the libraries' objects
+    assert gc.get_freeze_count() == 0
+    gc.disable()
+    try:
+        assert not freeze_setup_objects() and gc.get_freeze_count() == 0  # collector off: nothing to do
+    finally:
+        gc.enable()
 
 
 def test_several_data_sets_with_one_connectivity(tmp_path):

@@ -42,6 +42,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import csv
+import gc
 import io as _io
 import math
 import os
@@ -536,6 +537,19 @@ def autocast(device: torch.device, precision: str):
     """The training step's precision: ``bf16`` = autocast to bfloat16 (float32 master weights and
     optimizer; the roll-out's big FC products run in bfloat16, the mesh convolutions stay float32)."""
     return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+
+
+def freeze_setup_objects() -> bool:
+    """Exempt the objects that exist before the first iteration (imported libraries, the model, the
+    data: about 300,000) from the cyclic garbage collector's later passes, which otherwise walk all
+    of them at every full collection (measured on the horse: 1.12 -> 1.09 s an iteration, A/B in
+    one process); objects made later are collected as usual. Undone by ``gc.unfreeze()``. False
+    (nothing done) when the collector is off."""
+    if not gc.isenabled():
+        return False
+    gc.collect()
+    gc.freeze()
+    return True
 
 
 def fused_adam(device) -> bool:
@@ -1076,6 +1090,7 @@ def train(
     clipped = 0  # iterations whose gradient was clipped since the last metrics row
     checked = [k for k in ("rec", "bd", "kl", "l2", "motion", "vertex") if getattr(config, f"w_{k}") != 0]
     checked_names = [f"the loss term {k}" for k in checked] + ["the total loss", "the gradient norm"]
+    frozen = freeze_setup_objects()
     try:
         if bar is not None:
             bar.start()
@@ -1144,6 +1159,8 @@ def train(
         if start >= config.iterations and is_main:
             log(f"{run_dir}: already at iteration {start} (>= --iterations {config.iterations}); nothing to do")
     finally:
+        if frozen:
+            gc.unfreeze()
         if bar is not None:
             bar.stop()
         if metrics is not None:
