@@ -1,4 +1,4 @@
-"""The roll-out's fast path: one fused mesh-convolution layer with a hand-written backward.
+"""The roll-out's fast path: fused mesh-convolution layers with a hand-written backward.
 
 What it fuses, and why. A mesh-conv layer on vertex-major frames ``x`` ``(V, C, B)`` (vertex,
 channel, window) is ``y = act(W_s x + W_r (A x) + b) [+ r]`` (``W_s``/``W_r`` the self and ring
@@ -6,8 +6,11 @@ channel maps ``(C_out, C_in)``, ``A`` the row-normalised 1-ring mean, ``act`` ta
 an optional residual: the decoder's last layer adds the current frame, ``X_t+1 = X_t + dX``).
 The ring mean acts on vertices only, so ``A (W_r x) = W_r (A x)``. Written as plain torch ops
 with autograd (``MeshConv.forward``, the readable reference) one layer costs about ten
-full-size passes forward and more backward. ``MeshConvFused`` saves only ``x`` and the
-activation's output and has two implementations of the same arithmetic:
+full-size passes forward and more backward. ``MeshConvFused`` (one layer) saves only ``x`` and
+the activation's output; ``MeshConvStack`` (the roll-out's encoder and decoder: several layers
+as one autograd node) also lets each layer hand the one below the gradient of its
+pre-activation, so a tanh layer's backward needs no pass of its own for tanh's derivative. Two
+implementations of the same arithmetic:
 
 * CPU, float32: ``csrc/mesh_conv.cpp``, compiled on first use with the machine's C++ compiler
   (``torch.utils.cpp_extension``; cached in ``meshseq_kernels-PY-TORCH-CPU`` under
@@ -16,8 +19,9 @@ activation's output and has two implementations of the same arithmetic:
   block is in registers, vectorised over the windows: ``x`` read once, ``y`` written once.
   Backward: ``gx = W_s^T g + W_r^T (A^T g)`` and the weight gradients in one more pass, summed
   per fixed vertex chunk so that the bits do not depend on the thread count. Measured on the
-  horse (8431 vertices, 16 windows, 1 thread): 1.6 ms forward, 3.2 ms backward per layer,
-  against 4.4 + 6.6 ms for the torch-op version of the channel-major layout it replaced.
+  horse (8431 vertices, 16 windows, 2 threads, 10th percentile of 150): 0.7 ms forward with
+  tanh, 1.1-1.6 ms backward per layer (the machine's speed drifts), against 4.4 + 6.6 ms (1
+  thread) for the torch-op version of the channel-major layout it replaced.
 * elsewhere (CUDA, float64, no compiler, or ``MESHSEQ_CPU_KERNELS=0``): the same layer as a few
   torch operators (``embedding_bag`` ring means on the ``(V, C*B)`` table, broadcast matmuls for
   the maps).
@@ -27,7 +31,8 @@ Both agree with ``MeshConv.forward`` to float32 rounding (``tests/test_kernels.p
 The big FC's per-step products (``fc_product``: ``W x``, ``fc_transposed_product``: ``W^T h``;
 ``W`` ``(L, V*C)``, 39 MB on the horse, against 16 columns) run in ``csrc/fc.cpp`` on CPU in
 float32: each product is one stream over ``W``, each weight broadcast against a SIMD vector of
-the columns; BLAS ran these skinny shapes at a third to a half of the rate (see that file).
+the columns (2.0 ms a product on the horse, 2 threads: about the time to read ``W`` from memory);
+BLAS ran these skinny shapes at a third to a half of that rate (see that file).
 
 The window losses' per-frame squared errors (``frame_errors``: L_rec of both chains, L_bd and
 L_motion's step sizes) run in ``csrc/frame_errors.cpp`` on CPU in float32: one pass forward, one

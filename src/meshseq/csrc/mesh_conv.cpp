@@ -95,11 +95,12 @@ inline void own_and_ring(const float* a, Csr M, int64_t v, int C, int B, int b0,
 }
 
 // T: a tile of W windows
-// CI, CO: the channel counts when known at compile time (0: at run time, ci and co)
-template <typename T, int W, int CI, int CO>
+// CI, CO: the channel counts when known at compile time (0: at run time, ci and co); BT: the number
+// of windows when known (a training batch of 16 chains: one tile; 0: at run time, b_rt)
+template <typename T, int W, int CI, int CO, int BT = 0>
 void forward_tiles(const float* X, float* Y, const float* Ws, const float* Wr, const float* bias,
-                   Csr A, const float* R, int64_t V, int ci, int co, int B, bool act) {
-  const int Ci = CI ? CI : ci, Co = CO ? CO : co;
+                   Csr A, const float* R, int64_t V, int ci, int co, int b_rt, bool act) {
+  const int Ci = CI ? CI : ci, Co = CO ? CO : co, B = BT ? BT : b_rt;
   const int64_t ys = int64_t(Co) * B;
   at::parallel_for(0, V, 128, [&](int64_t v0, int64_t v1) {
     T ax[CMAX], xv[CMAX];
@@ -133,12 +134,13 @@ void tanh_grad_tiles(const float* gy, const float* y, float* g, int64_t n) {
 // sums with register accumulators (OG output channels x Ci inputs at a time), instead of a
 // read-modify-write of all 2 Co Ci + Co sums in memory per vertex (store-bound: a 64-byte store
 // takes two cycles on AMD Zen 4). Each sum still adds the vertices in order within a chunk.
-// CI, CO: the channel counts when known at compile time (0: at run time, ci and co).
+// CI, CO, BT: as in forward_tiles.
 // input_tanh: x is a tanh output and gx is returned times tanh's derivative 1 - x^2 (the gradient of
 // the layer below's pre-activation, which then needs no pass of its own)
-template <typename T, int W, int CI, int CO>
+template <typename T, int W, int CI, int CO, int BT = 0>
 void backward_tiles(const float* G, const float* X, float* GX, const float* Ws, const float* Wr,
-                    Csr At, float* partial, int64_t V, int ci, int co, int B, bool input_tanh) {
+                    Csr At, float* partial, int64_t V, int ci, int co, int b_rt, bool input_tanh) {
+  const int B = BT ? BT : b_rt;
   constexpr int SUB = 16, OG = (CO > 0 && CO % 3 == 0) ? 3 : 1, CIN = CI > 0 ? CI : CMAX;
   const int Ci = CI ? CI : ci, Co = CO ? CO : co;
   const int64_t xs = int64_t(Ci) * B, gs = int64_t(Co) * B;
@@ -234,8 +236,10 @@ torch::Tensor conv_forward(torch::Tensor x_in, torch::Tensor w_self, torch::Tens
     tiles(x.data_ptr<float>(), y.data_ptr<float>(), ws.data_ptr<float>(), wr.data_ptr<float>(), b.data_ptr<float>(),
           csr(rowptr, col, weight), R, V, Ci, Co, B, act);
   };
-  const bool nine = Ci == 9 && Co == 9;  // ACAP's 9 channels: sizes known to the compiler (1.4x faster)
-  if (W == 16) nine ? run(forward_tiles<v16, 16, 9, 9>) : run(forward_tiles<v16, 16, 0, 0>);
+  // ACAP's 9 channels, and 16 windows: sizes known to the compiler (constant offsets, fewer registers)
+  const bool nine = Ci == 9 && Co == 9;
+  if (W == 16 && nine && B == 16) run(forward_tiles<v16, 16, 9, 9, 16>);
+  else if (W == 16) nine ? run(forward_tiles<v16, 16, 9, 9>) : run(forward_tiles<v16, 16, 0, 0>);
   else nine ? run(forward_tiles<v8, 8, 9, 9>) : run(forward_tiles<v8, 8, 0, 0>);
   return B == B_in ? y : y.narrow(2, 0, B_in).contiguous();
 }
@@ -270,7 +274,8 @@ std::vector<torch::Tensor> conv_backward(torch::Tensor gy, std::optional<torch::
           csr(rowptr_t, col_t, weight_t), partial.data(), V, Ci, Co, B, input_tanh);
   };
   const bool nine = Ci == 9 && Co == 9;
-  if (W == 16) nine ? run(backward_tiles<v16, 16, 9, 9>) : run(backward_tiles<v16, 16, 0, 0>);
+  if (W == 16 && nine && B == 16) run(backward_tiles<v16, 16, 9, 9, 16>);
+  else if (W == 16) nine ? run(backward_tiles<v16, 16, 9, 9>) : run(backward_tiles<v16, 16, 0, 0>);
   else nine ? run(backward_tiles<v8, 8, 9, 9>) : run(backward_tiles<v8, 8, 0, 0>);
   auto sums = torch::empty({n_sums}, x.options());
   float* s = sums.data_ptr<float>();
