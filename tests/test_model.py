@@ -9,7 +9,7 @@ import torch
 from meshseq.data.synthetic import twisting_limb
 from meshseq.errors import MeshseqError
 from meshseq.mesh import Topology
-from meshseq.model import BDLSTM, MeshConv, ModelConfig, NeighborMean, count_step_flops
+from meshseq.model import BDLSTM, MeshConv, ModelConfig, NeighborMean, count_step_flops, lstm_step
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -333,3 +333,21 @@ def test_feedback_grad_stop_treats_fed_back_frames_as_constants(limb, monkeypatc
     for n in ref:
         err = (stop[n] - ref[n]).norm() / ref[n].norm()
         assert err <= 1e-5, f"{n}: relative error {float(err):.2e}"
+
+
+@pytest.mark.parametrize("layers", [1, 3])
+def test_lstm_step_is_one_step_of_the_stacked_module(layers):
+    """``lstm_step`` (torch.lstm_cell layer by layer) computes what ``nn.LSTM`` computes for one time
+    step, output, state and every gradient, to float32 rounding."""
+    torch.manual_seed(layers)
+    lstm = torch.nn.LSTM(12, 12, layers)
+    z, h, c = torch.randn(5, 12, requires_grad=True), torch.randn(layers, 5, 12), torch.randn(layers, 5, 12)
+    out, (h2, c2) = lstm_step(lstm, z, h, c)
+    ref, (h_ref, c_ref) = lstm(z.unsqueeze(0), (h, c))
+    for a, b in ((out, ref[0]), (h2, h_ref), (c2, c_ref)):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5)
+    w = torch.randn(12)
+    grads = torch.autograd.grad((out @ w).sum() + c2.sum(), [z, *lstm.parameters()])
+    grads_ref = torch.autograd.grad((ref[0] @ w).sum() + c_ref.sum(), [z, *lstm.parameters()])
+    for g, g_ref in zip(grads, grads_ref):
+        torch.testing.assert_close(g, g_ref, atol=1e-6, rtol=1e-5)

@@ -359,6 +359,23 @@ def stack_frames(frames: list[torch.Tensor]) -> torch.Tensor:
     return _StackFrames.apply(*frames)
 
 
+def lstm_step(lstm: nn.LSTM, z: torch.Tensor, h: torch.Tensor, c: torch.Tensor):
+    """One time step of a stacked ``nn.LSTM`` (unidirectional, no projection or dropout):
+    ``z`` ``(B, L_in)``, ``h``, ``c`` ``(K, B, L)`` -> ``(out (B, L), (h', c'))``, the module's
+    arithmetic, as ``torch.lstm_cell`` layer by layer. (The module's one-step call went through
+    oneDNN's sequence kernel: 59 against 40 ms for the 31 steps of a roll-out, forward and
+    backward, 16 chains of 128, 2 threads; the results agree to float32 rounding.)
+    """
+    hs, cs = [], []
+    x = z
+    for k in range(lstm.num_layers):
+        x, ck = torch.lstm_cell(x, (h[k], c[k]), getattr(lstm, f"weight_ih_l{k}"), getattr(lstm, f"weight_hh_l{k}"),
+                                getattr(lstm, f"bias_ih_l{k}"), getattr(lstm, f"bias_hh_l{k}"))
+        hs.append(x)
+        cs.append(ck)
+    return x, (torch.stack(hs), torch.stack(cs))
+
+
 class _WeightGate(torch.autograd.Function):
     """The FC weight for one roll-out; its backward hands over the collected gradient.
 
@@ -611,16 +628,14 @@ class BDLSTM(nn.Module):
         """One LSTM step for ``z`` ``(B, L)``; rows ``n_forward:`` use the backward LSTM (std-bd)."""
         h, c = state
         if self.lstm_backward is None or n_forward is None or n_forward >= z.shape[0]:
-            out, (h2, c2) = self.lstm(z.unsqueeze(0), (h, c))
-            return out[0], (h2, c2)
+            return lstm_step(self.lstm, z, h, c)
         if n_forward <= 0:
-            out, (h2, c2) = self.lstm_backward(z.unsqueeze(0), (h, c))
-            return out[0], (h2, c2)
+            return lstm_step(self.lstm_backward, z, h, c)
         f = slice(0, n_forward)
         b = slice(n_forward, None)
-        of, (hf, cf) = self.lstm(z[f].unsqueeze(0), (h[:, f].contiguous(), c[:, f].contiguous()))
-        ob, (hb, cb) = self.lstm_backward(z[b].unsqueeze(0), (h[:, b].contiguous(), c[:, b].contiguous()))
-        return torch.cat([of[0], ob[0]]), (torch.cat([hf, hb], 1), torch.cat([cf, cb], 1))
+        of, (hf, cf) = lstm_step(self.lstm, z[f], h[:, f], c[:, f])
+        ob, (hb, cb) = lstm_step(self.lstm_backward, z[b], h[:, b], c[:, b])
+        return torch.cat([of, ob]), (torch.cat([hf, hb], 1), torch.cat([cf, cb], 1))
 
     def step(self, state, x: torch.Tensor, sample: bool = False, n_forward: int | None = None):
         """G(s, X) -> (s', X + dX).
