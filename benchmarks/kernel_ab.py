@@ -1,0 +1,121 @@
+"""Benchmark: this checkout's C++ CPU kernels against another git revision's, call by call.
+
+Builds ``src/meshseq/csrc/mesh_conv.cpp`` and ``fc.cpp`` as they are at ``--against REV`` into a
+second extension (their operators renamed to the ``meshseq_rev`` namespace, so both builds load
+into one process), then times the two builds' calls alternately on the horse's mesh (8431
+vertices, 9 channels, 16 windows, the FC weight 128 x 75879) and prints, per operation, the 10th
+percentile and the median of each in milliseconds and whether the outputs have the same bits.
+
+Why this way: this machine's speed drifts by 20-50% from one minute to the next, so two
+separately measured runs cannot show a 5% lever; alternating A and B call by call in one
+process, and reading the 10th percentile (the median moves with the drift much more), can.
+Whole training iterations are compared the same way by ``train_speed.py``'s variants.
+
+    python benchmarks/kernel_ab.py --against HEAD~3 [--threads 2] [--calls 150] [--windows 16]
+
+Operations: conv forward with tanh and without, conv backward with the tanh derivative and
+without (a revision without ``input_tanh`` is called with its own signature), ``fc_wx`` (W x)
+and ``fc_wtx`` (W^T h).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from meshseq import kernels
+from meshseq.mesh import Topology
+from meshseq.model import NeighborMean
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "horse-gallop.npz"
+SOURCES = ("mesh_conv.cpp", "fc.cpp")
+
+
+def build_revision(rev: str, folder: Path) -> None:
+    """Compile the kernels of git revision ``rev`` as operators ``torch.ops.meshseq_rev.*``."""
+    from torch.utils.cpp_extension import load
+
+    paths = []
+    for name in SOURCES:
+        text = subprocess.run(["git", "show", f"{rev}:src/meshseq/csrc/{name}"], cwd=ROOT, check=True,
+                              capture_output=True, text=True).stdout
+        text = re.sub(r"TORCH_LIBRARY(_FRAGMENT)?\(meshseq,", r"TORCH_LIBRARY\1(meshseq_rev,", text)
+        path = folder / name
+        path.write_text(text)
+        paths.append(str(path))
+    if "TORCH_LIBRARY(meshseq_rev" not in (folder / SOURCES[0]).read_text():
+        raise SystemExit(f"--against {rev}: {SOURCES[0]} does not define the meshseq operator library")
+    load("meshseq_rev_kernels", paths, extra_cflags=["-O3", "-march=native", "-fopenmp"], extra_ldflags=["-fopenmp"],
+         build_directory=str(folder), is_python_module=False, verbose=False)
+
+
+def takes_input_tanh(ops) -> bool:
+    """Whether this build's ``conv_backward`` has the ``input_tanh`` flag (since 2026-12-03)."""
+    return len(ops.conv_backward.default._schema.arguments) == 9
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--against", required=True, help="git revision whose kernels to compare with (e.g. HEAD~3)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--calls", type=int, default=150, help="alternated calls per build and operation")
+    ap.add_argument("--windows", type=int, default=16)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    kernels.keep_freed_memory()
+    if not kernels.cpu_kernels_available():
+        raise SystemExit("the C++ kernels could not be built here")
+    with tempfile.TemporaryDirectory() as tmp:
+        build_revision(args.against, Path(tmp))
+    d = np.load(DATA)
+    V = d["vertices"].shape[1]
+    ring = NeighborMean(Topology.from_faces(d["faces"], V))
+    A, At = ring.A, ring.At
+    g = torch.Generator().manual_seed(0)
+    B = args.windows
+    x, gy = torch.randn(V, 9, B, generator=g), torch.randn(V, 9, B, generator=g)
+    ws, wr, bias = 0.3 * torch.randn(9, 9, generator=g), 0.3 * torch.randn(9, 9, generator=g), torch.randn(9, generator=g)
+    W, xf, h = torch.randn(128, V * 9, generator=g), torch.randn(V * 9, B, generator=g), torch.randn(128, B, generator=g)
+    y = torch.tanh(torch.randn(V, 9, B, generator=g))
+    builds = {"this checkout": torch.ops.meshseq, f"{args.against}": torch.ops.meshseq_rev}
+
+    def conv_bwd(ops, y_or_none):
+        extra = (False,) if takes_input_tanh(ops) else ()
+        return ops.conv_backward(gy, y_or_none, x, ws, wr, At.crow_indices(), At.col_indices(), At.values(), *extra)
+
+    operations = {
+        "conv forward, tanh": lambda o: o.conv_forward(x, ws, wr, bias, A.crow_indices(), A.col_indices(), A.values(), True, None),
+        "conv forward, linear": lambda o: o.conv_forward(x, ws, wr, bias, A.crow_indices(), A.col_indices(), A.values(), False, None),
+        "conv backward, tanh": lambda o: conv_bwd(o, y),
+        "conv backward, linear": lambda o: conv_bwd(o, None),
+        "fc_wx (W x)": lambda o: o.fc_wx(W, xf, None),
+        "fc_wtx (W^T h)": lambda o: o.fc_wtx(W, h, None),
+    }
+    print(f"horse: {V} vertices, {B} windows, FC weight 128 x {V * 9}, {args.threads} threads; "
+          f"{args.calls} alternated calls each; milliseconds, 10th percentile / median")
+    names = list(builds)
+    print(f"{'operation':24s} {names[0]:>22s} {names[1]:>22s}   same bits")
+    for label, op in operations.items():
+        outs = [op(builds[n]) for n in names]  # warm-up, and the outputs to compare
+        flat = [[o] if isinstance(o, torch.Tensor) else list(o) for o in outs]
+        same = all(torch.equal(a, b) for a, b in zip(*flat))
+        times = {n: [] for n in names}
+        for i in range(args.calls):
+            for n in (names if i % 2 == 0 else names[::-1]):
+                t0 = time.perf_counter()
+                op(builds[n])
+                times[n].append(time.perf_counter() - t0)
+        cells = [f"{np.percentile(times[n], 10) * 1e3:9.3f} / {np.median(times[n]) * 1e3:8.3f}" for n in names]
+        print(f"{label:24s} {cells[0]:>22s} {cells[1]:>22s}   {'yes' if same else 'no'}")
+
+
+if __name__ == "__main__":
+    main()
