@@ -253,9 +253,13 @@ def _reference_rollout(m, first, steps, state, n_forward):
 
 
 @pytest.mark.parametrize("windows", [3, 4])  # 6 chains: the FC products by torch; 8: by csrc/fc.cpp
-def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch, windows):
+@pytest.mark.parametrize("bank_rows", [4096, 50])  # the FC weight gradient in one block, in several
+def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch, windows, bank_rows):
     """Loss and every gradient of the fused roll-out equal the plain reference to 1e-5 relative."""
+    from meshseq.model import _GradBank
     from meshseq.train import TrainConfig, WindowLoss
+
+    monkeypatch.setattr(_GradBank, "ROWS", bank_rows)
 
     m = make(limb, latent=16, layers=3)
     with torch.no_grad():
