@@ -1,4 +1,4 @@
-// One mesh-convolution layer, forward and backward, in one pass over vertex-major frames (CPU).
+// One mesh-convolution layer, forward and backward, over vertex-major frames (CPU).
 //
 //   y = act(Ws x + Wr (A x) + b) [+ r]        x (V, Ci, B), y (V, Co, B), float32, contiguous
 //
@@ -11,9 +11,16 @@
 //
 // Backward, with g = act ? gy (1 - y^2) : gy and A^T as CSR:
 //   gx = Ws^T g + Wr^T (A^T g),  gWs = sum g x^T,  gWr = sum (A^T g) x^T,  gb = sum g
-// (sum over vertices and windows) in one pass over vertices; the weight gradients are summed per
-// fixed chunk of vertices (NCHUNK, whatever the thread count) and the chunks in order, so the
-// result has the same bits with any number of threads (bit-exact resume).
+// (sum over vertices and windows) in one pass over vertices (two over each block of 16: gx, then
+// the weight-gradient sums in registers); optionally gx times 1 - x^2 when x is a tanh output
+// (the layer below's pre-activation gradient: kernels.MeshConvStack). The weight gradients are
+// summed per fixed chunk of vertices (NCHUNK, whatever the thread count) and the chunks in order,
+// so the result has the same bits with any number of threads (bit-exact resume).
+//
+// Sizes: ACAP's 9 channels and a batch of 16 windows are compiled as constants (offsets in the
+// instructions, accumulators in registers: `perf annotate` showed the run-time versions reloading
+// offsets and keeping accumulators on the stack); other sizes run the same code with run-time
+// sizes.
 //
 // Vectorised over the windows B: a tile of 16 windows of one channel (8 when B <= 8) is one SIMD
 // vector (GCC/Clang vector extensions; the compiler maps them to AVX-512, AVX2 or SSE). Other
