@@ -70,6 +70,41 @@ def test_vertex_loss_is_the_reconstructed_distance_of_the_picked_frames(limb):
     assert grad[:, [0, 2, 3, 5, 6]].abs().sum() == 0  # frames that are not picked get no gradient
 
 
+def test_cached_targets_give_the_same_loss_and_gradient_as_reconstructing_the_truth(limb):
+    """``cache_targets``: the truth's vertices of every training frame reconstructed once and
+    indexed by the windows' rows give L_vertex and its gradient as reconstructing the picked
+    truth frames does; without rows, or with a cache too large for ``CACHE_BYTES``, the truth is
+    reconstructed."""
+    seq, feats = limb
+    scaling = acap.Scaling.fit(feats)
+    frames = torch.as_tensor(scaling.apply(feats), dtype=torch.float32)  # (40, V, 9): all frames
+    rows = torch.tensor([[3, 4, 5, 6, 7, 8, 9], [30, 29, 28, 27, 26, 25, 24]])  # two windows, one reversed
+    truth = frames[rows]
+    generated = (truth + 0.05 * torch.randn(truth.shape, generator=torch.Generator().manual_seed(0)))
+    rec = acap.Reconstructor(seq.vertices[0], seq.faces)
+    loss = VertexLoss(TorchReconstructor(rec), scaling, unit=2.0, frames=3)
+
+    def value_and_grad(**kw):
+        g = generated.clone().requires_grad_(True)
+        v = loss(g, truth, **kw)
+        v.backward()
+        return v.detach(), g.grad
+
+    v_ref, g_ref = value_and_grad()
+    assert loss.cache_targets(frames, batch=7)  # several batches
+    assert loss.targets.shape == (40, frames.shape[1], 3)
+    v, g = value_and_grad(rows=rows)
+    torch.testing.assert_close(v, v_ref, rtol=1e-6, atol=0)
+    torch.testing.assert_close(g, g_ref, rtol=1e-6, atol=1e-9)
+    # the cache is really what is read: a wrong row changes the value
+    wrong = rows.clone()
+    wrong[0, -1] = 0
+    assert not torch.allclose(loss(generated, truth, rows=wrong), v_ref)
+    assert torch.equal(loss(generated, truth), v_ref)  # no rows: the truth is reconstructed
+    loss.CACHE_BYTES = 100
+    assert not loss.cache_targets(frames) and loss.targets is None
+
+
 def test_w_vertex_adds_the_term_to_the_objective(limb):
     seq, feats = limb
     assert RECIPES["paper"]["w_vertex"] == 0.0 and RECIPES["default"]["w_vertex"] == 1.0

@@ -446,7 +446,9 @@ class WindowLoss(nn.Module):
         # how the tied FC weight's gradient is formed in this objective's roll-outs (fc_lr "encoder")
         model.encoder_grad_scale = encoder_grad_scale(model.fc.weight.shape[1], config)
 
-    def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1):
+    def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1, rows: torch.Tensor | None = None):
+        """``rows`` ``(B, n)``: the stacked training frames the windows are (L_vertex then reads the
+        truth's vertices from its cache, ``VertexLoss.cache_targets``), or None."""
         out = self.model(windows, sample=sample, given=given, feedback_grad=self.feedback_grad)
         motion = self.weights["motion"] > 0
         errors = frame_errors(chains_of(out), windows, steps=motion)  # one pass for all these terms
@@ -454,9 +456,10 @@ class WindowLoss(nn.Module):
         if motion:
             terms["motion"] = motion_loss(out, windows, errors)
         if self.vertex_loss is not None:
-            terms["vertex"] = self.vertex_loss(out["forward"], windows)
+            terms["vertex"] = self.vertex_loss(out["forward"], windows, rows)
             if out["backward"] is not None:
-                terms["vertex"] = terms["vertex"] + self.vertex_loss(out["backward"], windows.flip(1))
+                back_rows = None if rows is None else rows.flip(1)
+                terms["vertex"] = terms["vertex"] + self.vertex_loss(out["backward"], windows.flip(1), back_rows)
         terms["l2"] = sum(p.square().sum() for p in self.model.weight_parameters())
         total = sum(self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) != 0)
         return total, {k: v.detach() for k, v in terms.items()}
@@ -767,19 +770,23 @@ def fit_window(config: TrainConfig, splits: list[Split], log=lambda msg: None) -
 
 
 def training_windows(frames: torch.Tensor, sampler: WindowSampler, rng: np.random.Generator,
-                     config: TrainConfig, share: slice = slice(None)) -> torch.Tensor:
+                     config: TrainConfig, share: slice = slice(None), with_rows: bool = False):
     """This process's ``share`` of one iteration's ``(batch, window, V, 9)`` windows of the
     stacked ``(T, V, 9)`` frames (every process draws the whole batch, so the generators stay in
     step); with ``speed_augment > 1`` played at random speeds (``WindowSampler.sample_at_speeds``),
-    each frame the linear interpolation of the two frames around its position."""
+    each frame the linear interpolation of the two frames around its position.
+    ``with_rows``: returns ``(windows, rows)``, ``rows`` ``(batch, window)`` the frames' indices
+    (None for windows played at other speeds: their frames are interpolations)."""
     def rows(r: np.ndarray) -> torch.Tensor:
         return frames[torch.from_numpy(r[share]).to(frames.device)]
 
     if config.speed_augment <= 1:
-        return rows(sampler.sample(rng, config.batch))
+        r = sampler.sample(rng, config.batch)
+        return (rows(r), torch.from_numpy(r[share])) if with_rows else rows(r)
     before, after, weight = sampler.sample_at_speeds(rng, config.batch, config.speed_augment)
     w = torch.from_numpy(weight[share]).to(frames.device, frames.dtype)[..., None, None]
-    return torch.lerp(rows(before), rows(after), w)
+    windows = torch.lerp(rows(before), rows(after), w)
+    return (windows, None) if with_rows else windows
 
 
 def grad_norm(parameters) -> torch.Tensor:
@@ -1007,7 +1014,10 @@ def train(
 
     validating = is_main and config.validation > 0  # the main process measures the validation blocks
     truth = reconstructed_vertices(data) if (config.w_vertex > 0 or validating) else None
-    objective = WindowLoss(model, config, make_vertex_loss(data, scaled, splits, scaling, config, dev, truth))
+    vertex_loss = make_vertex_loss(data, scaled, splits, scaling, config, dev, truth)
+    if vertex_loss is not None and config.speed_augment <= 1:
+        vertex_loss.cache_targets(frames)  # the truth's vertices of every training frame, once
+    objective = WindowLoss(model, config, vertex_loss)
     if dist_info.active:
         objective = nn.parallel.DistributedDataParallel(
             objective,
@@ -1096,11 +1106,11 @@ def train(
             bar.start()
             task = bar.add_task("train", total=config.iterations, completed=start, terms="")
         for it in range(start + 1, config.iterations + 1):
-            windows = training_windows(frames, sampler, np_rng, config, slice(lo, hi))
+            windows, rows = training_windows(frames, sampler, np_rng, config, slice(lo, hi), with_rows=True)
             given = 1 if config.given <= 1 else int(np_rng.integers(1, config.given + 1))
             optimizer.zero_grad(set_to_none=True)
             with autocast(dev, config.precision):
-                total, terms = objective(windows, sample=config.sample, given=given)
+                total, terms = objective(windows, sample=config.sample, given=given, rows=rows)
             total.backward()
             # one finiteness check per iteration, before the update: the weighted loss terms, the
             # total and the norm of all gradients (after DDP's all-reduce, so common to all ranks)
