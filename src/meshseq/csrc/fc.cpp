@@ -31,10 +31,6 @@ namespace {
 typedef float v16 __attribute__((vector_size(64)));
 typedef float v8 __attribute__((vector_size(32)));
 
-// s in every lane: one broadcast. (`T{} + s`, as this was, compiled to an add and a broadcast:
-// 0 + s cannot be folded to s, because of s = -0; in the FC products that tripled the instructions
-// per multiply-add. s - 0 is s for every s; a lane-by-lane loop compiled to 16 masked broadcasts.)
-template <typename T> inline T splat(float s) { return s - T{}; }
 template <typename T> inline T load(const float* p) { T r; __builtin_memcpy(&r, p, sizeof(T)); return r; }
 template <typename T> inline void store(float* p, T v) { __builtin_memcpy(p, &v, sizeof(T)); }
 
@@ -56,7 +52,9 @@ inline void wx_rows(const float* Wm, int64_t N, const float* X, int64_t l0, int6
     for (int i = 0; i < LB; ++i) w[i] = Wm + (l0 + i) * N;
     for (int64_t n = n0; n < n1; ++n) {
       const T xv = load<T>(X + n * B + b0);
-      for (int i = 0; i < LB; ++i) acc[i] += w[i][n] * xv;  // the weight broadcast inside the multiply-add
+      // scalar * vector: the weight broadcast inside the multiply-add (one instruction; a separate
+      // broadcast of `T{} + w` compiled to an add, a broadcast and the multiply-add)
+      for (int i = 0; i < LB; ++i) acc[i] += w[i][n] * xv;
     }
     for (int i = 0; i < LB; ++i) store(partial + (l0 + i) * B + b0, acc[i]);
   }
