@@ -51,17 +51,19 @@ def test_training_windows_interpolate_the_frames_and_are_the_plain_windows_when_
     t = torch.arange(60, dtype=torch.float32)
     frames = t[:, None, None].expand(60, 3, 9).contiguous() * torch.linspace(1, 2, 9)  # frame t = t * c
     config = TrainConfig(window=8, batch=16, speed_augment=2.0)
-    w = training_windows(frames, sampler, np.random.default_rng(1), config)
+    w, w_rows = training_windows(frames, sampler, np.random.default_rng(1), config)
+    assert w_rows is None  # interpolated frames: no frame indices
     before, after, weight = sampler.sample_at_speeds(np.random.default_rng(1), 16, 2.0)
     expected = torch.from_numpy(before + weight).float()[..., None, None] * torch.linspace(1, 2, 9)
     assert w.shape == (16, 8, 3, 9)
     assert torch.allclose(w, expected.expand_as(w), atol=1e-4)
     assert not torch.allclose(w[:, 1] - w[:, 0], torch.ones(16, 3, 9) * torch.linspace(1, 2, 9))
     # off (R = 1): exactly the windows (and the random numbers) of WindowSampler.sample
-    plain = training_windows(frames, sampler, np.random.default_rng(1), TrainConfig(window=8, batch=16))
+    plain, plain_rows = training_windows(frames, sampler, np.random.default_rng(1), TrainConfig(window=8, batch=16))
     assert torch.equal(plain, frames[torch.from_numpy(sampler.sample(np.random.default_rng(1), 16))])
+    assert torch.equal(plain, frames[plain_rows])  # the rows are the windows' frames
     # a process's share (distributed training) is its slice of the same batch
-    part = training_windows(frames, sampler, np.random.default_rng(1), config, slice(4, 12))
+    part, _ = training_windows(frames, sampler, np.random.default_rng(1), config, slice(4, 12))
     assert torch.equal(part, w[4:12])
 
 

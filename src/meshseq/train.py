@@ -770,23 +770,22 @@ def fit_window(config: TrainConfig, splits: list[Split], log=lambda msg: None) -
 
 
 def training_windows(frames: torch.Tensor, sampler: WindowSampler, rng: np.random.Generator,
-                     config: TrainConfig, share: slice = slice(None), with_rows: bool = False):
+                     config: TrainConfig, share: slice = slice(None)) -> tuple[torch.Tensor, torch.Tensor | None]:
     """This process's ``share`` of one iteration's ``(batch, window, V, 9)`` windows of the
     stacked ``(T, V, 9)`` frames (every process draws the whole batch, so the generators stay in
     step); with ``speed_augment > 1`` played at random speeds (``WindowSampler.sample_at_speeds``),
     each frame the linear interpolation of the two frames around its position.
-    ``with_rows``: returns ``(windows, rows)``, ``rows`` ``(batch, window)`` the frames' indices
-    (None for windows played at other speeds: their frames are interpolations)."""
+    Returns ``(windows, rows)``, ``rows`` ``(batch, window)`` the frames' indices (None for windows
+    played at other speeds: their frames are interpolations)."""
     def rows(r: np.ndarray) -> torch.Tensor:
         return frames[torch.from_numpy(r[share]).to(frames.device)]
 
     if config.speed_augment <= 1:
         r = sampler.sample(rng, config.batch)
-        return (rows(r), torch.from_numpy(r[share])) if with_rows else rows(r)
+        return rows(r), torch.from_numpy(r[share])
     before, after, weight = sampler.sample_at_speeds(rng, config.batch, config.speed_augment)
     w = torch.from_numpy(weight[share]).to(frames.device, frames.dtype)[..., None, None]
-    windows = torch.lerp(rows(before), rows(after), w)
-    return (windows, None) if with_rows else windows
+    return torch.lerp(rows(before), rows(after), w), None
 
 
 def grad_norm(parameters) -> torch.Tensor:
@@ -1106,7 +1105,7 @@ def train(
             bar.start()
             task = bar.add_task("train", total=config.iterations, completed=start, terms="")
         for it in range(start + 1, config.iterations + 1):
-            windows, rows = training_windows(frames, sampler, np_rng, config, slice(lo, hi), with_rows=True)
+            windows, rows = training_windows(frames, sampler, np_rng, config, slice(lo, hi))
             given = 1 if config.given <= 1 else int(np_rng.integers(1, config.given + 1))
             optimizer.zero_grad(set_to_none=True)
             with autocast(dev, config.precision):
