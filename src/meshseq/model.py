@@ -318,7 +318,7 @@ class _GradBank:
     the sum is ``(R L)^T`` with ``R = [right_1 ... right_T]`` ``(N, T B)`` (one 64-byte-row copy,
     into ``scratch``'s reused buffer)."""
 
-    ROWS = 4096  # rows of R per block of the weight-gradient product
+    ROWS = 1024  # rows of R per block of the weight-gradient product (its 512 KB product fits in L2)
 
     def __init__(self, encoder_scale: float, scratch: _Scratch):
         self.left: list[torch.Tensor] = []
@@ -334,8 +334,9 @@ class _GradBank:
         R = torch.cat(self.right, 1, out=self.scratch.take((N, cols), self.right[0]))
         left = torch.cat(self.left)  # (T B, L)
         # (R left)^T in the weight's own layout (L, N), a block of R's rows at a time: each block's
-        # product (2 MB) is transposed while in cache; one whole product transposed after (autograd
-        # keeps a gradient in its parameter's layout) cost a 39 MB strided copy (150 -> 132 ms)
+        # product is transposed while in cache; one whole product transposed after (autograd
+        # keeps a gradient in its parameter's layout) cost a 39 MB strided copy (150 -> 132 ms);
+        # blocks of 1024 rows (512 KB, in L2) instead of 4096: 134 -> 124 ms (10th percentile), same bits
         g = torch.empty(left.shape[1], N, dtype=torch.float32, device=R.device)
         for a in range(0, N, self.ROWS):
             b = min(N, a + self.ROWS)
