@@ -194,11 +194,12 @@ def test_fc_products_have_the_same_bits_with_any_thread_count():
 
 @pytest.mark.parametrize("steps", [False, True])
 @pytest.mark.parametrize("both", [True, False])
-@pytest.mark.parametrize("values", [9 * 7, 9 * 300])  # a partial SIMD vector; more than one summing block
-def test_frame_errors_match_torch_and_plain_autograd(both, values, steps, monkeypatch):
+@pytest.mark.parametrize("values", [9 * 7, 9 * 300])  # a partial chunk; more than one chunk
+@pytest.mark.parametrize("B", [3, 9])  # lanes one at a time; a group of 8 lanes and one more
+def test_frame_errors_match_torch_and_plain_autograd(both, values, steps, B, monkeypatch):
     assert kernels.cpu_kernels_available()
-    torch.manual_seed(values)
-    B, n = 3, 5
+    torch.manual_seed(values + B)
+    n = 5
     windows = torch.randn(B, n, values // 9, 9)
     chains = torch.randn(2 * B if both else B, n, values // 9, 9)
     ge = torch.randn(6 if steps else 3, B, n)
@@ -232,6 +233,28 @@ def test_frame_errors_match_torch_and_plain_autograd(both, values, steps, monkey
             assert e_cpp[4].abs().max() == 0
     torch.testing.assert_close(e_cpp, e_ref, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(g_cpp, g_ref, rtol=1e-5, atol=1e-5)
+
+
+def test_frame_errors_of_vertex_major_frames_match_the_stacked_chains_and_skip_frames_without_gradient():
+    assert kernels.cpu_kernels_available()
+    torch.manual_seed(1)
+    B, n, V = 8, 6, 40
+    windows = torch.randn(B, n, V, 9)
+    frames = [torch.randn(V, 9, 2 * B, requires_grad=i > 0) for i in range(n)]  # frame 0: given, no gradient
+    ge = torch.randn(6, B, n)
+    e = kernels.frame_errors_of_frames(frames, windows, steps=True)
+    grads = torch.autograd.grad(e, frames[1:], ge)
+    chains = torch.stack([f.detach().permute(2, 0, 1) for f in frames], 1).requires_grad_()
+    e_ref = kernels._frame_errors_torch(chains, windows, steps=True)
+    (g_ref,) = torch.autograd.grad(e_ref, chains, ge)
+    torch.testing.assert_close(e, e_ref, rtol=1e-5, atol=1e-5)
+    for i, g in enumerate(grads, start=1):
+        assert g.shape == (V, 9, 2 * B) and g.is_contiguous()
+        torch.testing.assert_close(g, g_ref[:, i].permute(1, 2, 0), rtol=1e-5, atol=1e-5)
+    # a frame that needs no gradient gets none
+    e2 = kernels.frame_errors_of_frames(frames, windows)
+    e2.sum().backward()
+    assert frames[0].grad is None and frames[1].grad is not None
 
 
 def test_frame_errors_have_the_same_bits_with_any_thread_count():

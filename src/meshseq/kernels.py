@@ -163,26 +163,43 @@ def fc_transposed_product(weight: torch.Tensor, h: torch.Tensor, bias: torch.Ten
 
 
 class _FrameErrors(torch.autograd.Function):
-    """``csrc/frame_errors.cpp`` with autograd; see ``frame_errors``."""
+    """``csrc/frame_errors.cpp`` with autograd; see ``frame_errors_of_frames``."""
 
     @staticmethod
-    def forward(ctx, chains, windows, steps):
-        R, n = chains.shape[:2]
-        B = windows.shape[0]
-        c, w = chains.reshape(R, n, -1), windows.reshape(B, n, -1)
-        ctx.save_for_backward(c, w)
-        ctx.shape = chains.shape
-        return torch.ops.meshseq.frame_errors(c, w, steps)
+    def forward(ctx, windows, steps, *frames):
+        w = windows.reshape(windows.shape[0], windows.shape[1], -1)
+        ctx.save_for_backward(w, *frames)
+        return torch.ops.meshseq.frame_errors(list(frames), w, steps)
 
     @staticmethod
     def backward(ctx, ge):
-        c, w = ctx.saved_tensors
-        return torch.ops.meshseq.frame_errors_backward(ge, c, w).view(ctx.shape), None, None
+        w, *frames = ctx.saved_tensors
+        need = [i for i in range(len(frames)) if ctx.needs_input_grad[2 + i]]
+        grads: list = [None] * len(frames)
+        for i, g in zip(need, torch.ops.meshseq.frame_errors_backward(ge, frames, w, need)):
+            grads[i] = g
+        return (None, None, *grads)
 
 
 def frame_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``||a - b||^2`` per frame: ``(B, n, V, C)`` pairs -> ``(B, n)`` (torch operators)."""
     return (a - b).square().sum((-2, -1))
+
+
+def frame_errors_of_frames(frames: list[torch.Tensor], windows: torch.Tensor, steps: bool = False) -> torch.Tensor:
+    """``frame_errors`` of a roll-out's vertex-major frames: ``frames`` ``n`` tensors ``(V, C, R)``
+    (lanes: the ``B`` forward chains, then, when ``R = 2B``, the backward chains), as
+    ``BDLSTM.forward`` makes them (its ``"frames"``).
+
+    On CPU in float32 one C++ pass forward and one backward (``csrc/frame_errors.cpp``), each
+    frame's gradient in its own layout, with no stacked copy of the chains either way (the stack
+    and the transposes of its gradient took about 40 ms an iteration on the horse); elsewhere the
+    frames are stacked and the torch operators run.
+    """
+    if (all(f.dtype == torch.float32 for f in frames) and windows.dtype == torch.float32
+            and not windows.requires_grad and _use_cpu_kernels(frames[0])):
+        return _FrameErrors.apply(windows.contiguous(), steps, *(f.contiguous() for f in frames))
+    return _frame_errors_torch(torch.stack([f.permute(2, 0, 1) for f in frames], 1), windows, steps)
 
 
 def frame_errors(chains: torch.Tensor, windows: torch.Tensor, steps: bool = False) -> torch.Tensor:
@@ -193,13 +210,19 @@ def frame_errors(chains: torch.Tensor, windows: torch.Tensor, steps: bool = Fals
 
     ``chains`` ``(R, n, V, C)``: the forward chains ``f`` (rows ``:B``), then, when ``R = 2B``,
     the backward chains ``g`` in their own order; ``windows`` ``(B, n, V, C)``: the truth ``x``.
-    On CPU in float32 one C++ pass forward and one backward (``csrc/frame_errors.cpp``, the
-    gradient without the windows'); elsewhere torch operators.
+    On CPU in float32 the chains are cut into vertex-major frames for ``frame_errors_of_frames``'s
+    C++ pass (training reads the roll-out's frames directly); elsewhere torch operators.
     """
-    B = windows.shape[0]
     if (chains.dtype == torch.float32 and windows.dtype == torch.float32 and not windows.requires_grad
             and _use_cpu_kernels(chains)):
-        return _FrameErrors.apply(chains.contiguous(), windows.contiguous(), steps)
+        return frame_errors_of_frames([chains[:, i].permute(1, 2, 0).contiguous() for i in range(chains.shape[1])],
+                                      windows, steps)
+    return _frame_errors_torch(chains, windows, steps)
+
+
+def _frame_errors_torch(chains: torch.Tensor, windows: torch.Tensor, steps: bool) -> torch.Tensor:
+    """``frame_errors`` as torch operators (any device and dtype)."""
+    B = windows.shape[0]
 
     def step_sizes(a):  # (B, n), zero first
         return F.pad(frame_error(a[:, 1:], a[:, :-1]), (1, 0))
@@ -232,12 +255,22 @@ def ring_mean(ring, x: torch.Tensor, transpose: bool = False) -> torch.Tensor:
     return out.view(x.shape)
 
 
+def ring_csr(ring, transpose: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(row pointers, columns, weights)`` of ``ring.A`` (or ``ring.At``), what the C++ layers read;
+    kept on the ring until its matrix changes (e.g. moved to another device): three accessor calls
+    per layer call were a few ms an iteration."""
+    M = ring.At if transpose else ring.A
+    cache = ring.__dict__.setdefault("_csr_arrays", {})
+    hit = cache.get(transpose)
+    if hit is None or hit[0] is not M:
+        hit = cache[transpose] = (M, M.crow_indices(), M.col_indices(), M.values())
+    return hit[1:]
+
+
 def _layer_forward(x, w_self, w_ring, bias, ring, act: bool, residual, cpp: bool) -> torch.Tensor:
     """One layer ``act(W_s x + W_r (A x) + b) [+ residual]`` on contiguous ``(V, C_in, B)``."""
     if cpp:
-        A = ring.A
-        return torch.ops.meshseq.conv_forward(x, w_self, w_ring, bias, A.crow_indices(), A.col_indices(),
-                                              A.values(), act, residual)
+        return torch.ops.meshseq.conv_forward(x, w_self, w_ring, bias, *ring_csr(ring), act, residual)
     y = torch.matmul(w_self, x).add_(torch.matmul(w_ring, ring_mean(ring, x))).add_(bias[:, None])
     if act:
         y.tanh_()
@@ -252,9 +285,7 @@ def _layer_backward(g, y, x, w_self, w_ring, ring, input_tanh: bool, cpp: bool):
     has none or ``g`` is already its pre-activation's gradient; ``input_tanh``: ``x`` is a tanh
     output, and ``gx`` comes back times ``1 - x^2`` (the layer below's pre-activation gradient)."""
     if cpp:
-        At = ring.At
-        return torch.ops.meshseq.conv_backward(g.contiguous(), y, x, w_self, w_ring, At.crow_indices(),
-                                               At.col_indices(), At.values(), input_tanh)
+        return torch.ops.meshseq.conv_backward(g.contiguous(), y, x, w_self, w_ring, *ring_csr(ring, True), input_tanh)
     if y is not None:
         g = torch.ops.aten.tanh_backward(g, y)
     atg = ring_mean(ring, g.contiguous(), transpose=True)  # dL/d(A x)

@@ -518,6 +518,39 @@ class _FC:
         return _Decode.apply(h, self.weight, self.dec_bias, self.bank)
 
 
+class RolloutOutput(dict):
+    """``BDLSTM.forward``'s result: a dict whose stacked entries are made when first read.
+
+    ``frames`` (``n`` vertex-major ``(V, C, R)`` tensors: the ``R = B`` forward chains, then, for
+    the bidirectional variants, ``B`` backward chains), ``mu``, ``logvar`` are there from the start;
+    ``chains`` ``(R, n, V, C)`` (``stack_frames``), ``forward`` and ``backward`` ``(B, n, V, C)``
+    (one split of ``chains``; ``backward`` None without backward chains) are made on first access.
+    The window losses read ``frames`` directly (``kernels.frame_errors_of_frames``), so a training
+    step that needs nothing else never stacks them (155 MB on the horse, and a transposing copy
+    of each frame's gradient).
+    """
+
+    def __init__(self, frames: list[torch.Tensor], n_forward: int | None, mu: torch.Tensor, logvar: torch.Tensor):
+        super().__init__(frames=frames, mu=mu, logvar=logvar)
+        self.n_forward = n_forward  # None: forward chains only
+        if n_forward is None:
+            self["backward"] = None
+
+    def __missing__(self, key):
+        if key == "chains":
+            self["chains"] = stack_frames(self["frames"])
+        elif key in ("forward", "backward"):
+            if self.n_forward is None:
+                self["forward"] = self["chains"]
+            else:
+                # one split (its backward joins the two gradients), not two slices (each of whose
+                # backward would zero-fill a gradient of all 2B rows)
+                self["forward"], self["backward"] = self["chains"].split(self.n_forward)
+        else:
+            raise KeyError(key)
+        return self[key]
+
+
 # --------------------------------------------------------------------------------------------
 # the generator
 
@@ -674,6 +707,13 @@ class BDLSTM(nn.Module):
         Returns ``(frames (B, steps + 1, V, C)`` with ``frames[:, 0] = first``, ``mu``, ``logvar``
         ``(steps, B, L)``, final state)``. The time loop is the only Python loop.
         """
+        frames, mu, logvar, state = self._rollout_vm(first, steps, state, sample, n_forward, feedback_grad)
+        # (B, n, V, C), contiguous: one copy
+        return stack_frames(frames), mu, logvar, state
+
+    def _rollout_vm(self, first, steps, state, sample, n_forward, feedback_grad=True):
+        """``rollout`` with the frames as it makes them: a list of ``steps + 1`` vertex-major
+        ``(V, C, B)`` tensors (the first is ``first``'s)."""
         fc = self._fc_ops(deferred=True, fused=self.fast_path)
         x = first.permute(1, 2, 0).contiguous()  # (V, C, B)
         frames, mus, logvars = [x], [], []
@@ -682,12 +722,10 @@ class BDLSTM(nn.Module):
             frames.append(x)
             mus.append(mu)
             logvars.append(logvar)
-        # (B, n, V, C), contiguous: one copy, and the loss then reads it in its own layout
-        out = stack_frames(frames)
         if steps:
-            return out, torch.stack(mus), torch.stack(logvars), state
+            return frames, torch.stack(mus), torch.stack(logvars), state
         empty = first.new_zeros(0, first.shape[0], self.config.latent)
-        return out, empty, empty, state
+        return frames, empty, empty, state
 
     def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1,
                 feedback_grad: bool = True) -> dict:
@@ -698,10 +736,11 @@ class BDLSTM(nn.Module):
         outputs after a true frame are one-step predictions; every output counts in the loss.
         ``feedback_grad``: see ``rollout`` (False: the generated frames fed back are constants).
 
-        Returns a dict with ``forward`` ``(B, n, V, C)`` (S^f_1..S^f_n, S^f_1 = X_1), ``backward``
-        ``(B, n, V, C)`` in the backward chain's own order (S^b_1 = X_n, ..., S^b_n ~ X_1; None for
-        ``uni``), ``chains`` ``(B or 2B, n, V, C)`` (both, one tensor: forward, then backward),
-        ``mu`` and ``logvar`` ``(n - 1, B or 2B, L)``.
+        Returns a ``RolloutOutput`` (a dict) with ``forward`` ``(B, n, V, C)`` (S^f_1..S^f_n,
+        S^f_1 = X_1), ``backward`` ``(B, n, V, C)`` in the backward chain's own order (S^b_1 = X_n,
+        ..., S^b_n ~ X_1; None for ``uni``), ``chains`` ``(B or 2B, n, V, C)`` (both, one tensor:
+        forward, then backward), ``frames`` (the same as ``n`` vertex-major ``(V, C, B or 2B)``
+        tensors, as the roll-out made them), ``mu`` and ``logvar`` ``(n - 1, B or 2B, L)``.
         """
         B, n = windows.shape[:2]
         given = max(1, min(int(given), n))
@@ -714,21 +753,16 @@ class BDLSTM(nn.Module):
 
         outs, mus, logvars = [], [], []
         for i in range(given - 1):  # teacher-forced warm-up: one step from each true frame
-            frames, mu, logvar, state = self.rollout(first(i), 1, state, sample=sample, n_forward=n_forward)
-            outs.append(frames if i == 0 else frames[:, 1:])  # the first keeps the true frame 0
+            frames, mu, logvar, state = self._rollout_vm(first(i), 1, state, sample, n_forward)
+            outs += frames if i == 0 else frames[1:]  # the first keeps the true frame 0
             mus.append(mu)
             logvars.append(logvar)
-        frames, mu, logvar, _ = self.rollout(first(given - 1), n - given, state, sample=sample,
-                                             n_forward=n_forward, feedback_grad=feedback_grad)
+        frames, mu, logvar, _ = self._rollout_vm(first(given - 1), n - given, state, sample, n_forward,
+                                                 feedback_grad)
         if outs:  # after the warm-up: its frames, then the free chain without its (true) first frame
-            frames = torch.cat(outs + [frames[:, 1:]], 1)
+            frames = outs + frames[1:]
             mu, logvar = torch.cat(mus + [mu]), torch.cat(logvars + [logvar])
-        if uni:
-            return {"forward": frames, "backward": None, "mu": mu, "logvar": logvar, "chains": frames}
-        # one split (its backward joins the two gradients), not two slices (each of whose backward
-        # would zero-fill a gradient of all 2B rows)
-        fwd, bwd = frames.split(B)
-        return {"forward": fwd, "backward": bwd, "mu": mu, "logvar": logvar, "chains": frames}
+        return RolloutOutput(frames, None if uni else B, mu, logvar)
 
     def weight_parameters(self) -> list[torch.Tensor]:
         """Parameters counted by L_2 (weight matrices; biases excluded), each once."""

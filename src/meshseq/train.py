@@ -60,7 +60,7 @@ from meshseq import checkpoint as ckpt
 from meshseq.data.windows import (Split, WindowSampler, check_holdout, check_validation, fitted_window,
                                   heldout_rows, split_frames)
 from meshseq.errors import MeshseqError
-from meshseq.kernels import frame_errors, keep_freed_memory
+from meshseq.kernels import frame_errors, frame_errors_of_frames, keep_freed_memory
 from meshseq.mesh import Topology, topology_hash
 from meshseq.model import BDLSTM, ModelConfig, is_finite_number
 
@@ -364,28 +364,34 @@ def kl_weight(w_kl: float, n_vertices: int, kl_scale: str) -> float:
     return float(w_kl) * (n_vertices / KL_REFERENCE_VERTICES if kl_scale == "vertices" else 1.0)
 
 
-def chains_of(out: dict) -> torch.Tensor:
-    """``BDLSTM.forward``'s chains as one tensor ``(B or 2B, n, V, C)`` (forward, then backward)."""
-    chains = out.get("chains")
-    if chains is None:
-        chains = out["forward"] if out["backward"] is None else torch.cat([out["forward"], out["backward"]])
-    return chains
+def has_backward_chains(out: dict) -> bool:
+    """Whether ``BDLSTM.forward``'s output (or a dict like it) has backward chains, without making
+    a ``RolloutOutput`` stack its frames to say so."""
+    return out.get("backward", True) is not None  # a RolloutOutput with backward chains has no key yet
+
+
+def output_frame_errors(out: dict, windows: torch.Tensor, steps: bool = False) -> torch.Tensor:
+    """``kernels.frame_errors`` of ``BDLSTM.forward``'s output: from its vertex-major ``frames`` when
+    it has them (no stacked copy), otherwise from its stacked chains."""
+    if "frames" in out:
+        return frame_errors_of_frames(out["frames"], windows, steps=steps)
+    chains = out["forward"] if out["backward"] is None else torch.cat([out["forward"], out["backward"]])
+    return frame_errors(chains, windows, steps=steps)
 
 
 def window_losses(out: dict, windows: torch.Tensor, errors: torch.Tensor | None = None) -> dict:
     """Loss terms (unweighted) of ``BDLSTM.forward``'s output for ground truth ``(B, n, V, C)``.
 
-    ``errors``: ``kernels.frame_errors`` of the output, when already computed."""
-    fwd, bwd = out["forward"], out["backward"]
+    ``errors``: ``output_frame_errors`` of the output, when already computed."""
     # (3 or 6, B, n): rec forward, rec backward, bd per frame (then the step sizes)
-    e = frame_errors(chains_of(out), windows) if errors is None else errors
+    e = output_frame_errors(out, windows) if errors is None else errors
     rec = e[0, :, 1:].mean()  # the first frames are the given ones
-    if bwd is None:
-        bd = fwd.new_zeros(())
-    else:
+    if has_backward_chains(out):
         rec = rec + e[1, :, 1:].mean()
         bd = e[2].mean()
-    kl = kl_divergence(out["mu"], out["logvar"]) if out["mu"].numel() else fwd.new_zeros(())
+    else:
+        bd = e.new_zeros(())
+    kl = kl_divergence(out["mu"], out["logvar"]) if out["mu"].numel() else e.new_zeros(())
     return {"rec": rec, "bd": bd, "kl": kl, **latent_health(out["mu"], out["logvar"])}
 
 
@@ -395,12 +401,12 @@ def motion_loss(out: dict, windows: torch.Tensor, errors: torch.Tensor | None = 
 
     Blind to the direction of the change, so it penalises a roll-out that slows down (the
     squared-error optimum under phase uncertainty) without asking for the right phase.
-    ``errors``: ``kernels.frame_errors(..., steps=True)`` of the output, when already computed.
+    ``errors``: ``output_frame_errors(..., steps=True)`` of the output, when already computed.
     """
-    e = frame_errors(chains_of(out), windows, steps=True) if errors is None else errors
+    e = output_frame_errors(out, windows, steps=True) if errors is None else errors
     true_speed = e[5, :, 1:].sqrt()  # (B, n - 1); the backward chain's truth runs in reverse: flip
     loss = (e[3, :, 1:].add(1e-12).sqrt() - true_speed).square().mean()
-    if out["backward"] is not None:
+    if has_backward_chains(out):
         loss = loss + (e[4, :, 1:].add(1e-12).sqrt() - true_speed.flip(1)).square().mean()
     return loss
 
@@ -451,7 +457,7 @@ class WindowLoss(nn.Module):
         truth's vertices from its cache, ``VertexLoss.cache_targets``), or None."""
         out = self.model(windows, sample=sample, given=given, feedback_grad=self.feedback_grad)
         motion = self.weights["motion"] > 0
-        errors = frame_errors(chains_of(out), windows, steps=motion)  # one pass for all these terms
+        errors = output_frame_errors(out, windows, steps=motion)  # one pass for all these terms
         terms = window_losses(out, windows, errors)
         if motion:
             terms["motion"] = motion_loss(out, windows, errors)

@@ -1,180 +1,296 @@
-// The window losses' per-frame squared errors, forward and backward, in one pass each (CPU).
+// The window losses' per-frame squared errors, forward and backward, in one pass each (CPU),
+// read straight from the roll-out's vertex-major frames.
 //
-// chains (R, n, D): the roll-out's frames, R = B (forward chains only) or 2B (forward chains,
-// then backward chains in their own order); windows (B, n, D): the ground truth; D = V x C.
-// For each window b and frame i (j = n - 1 - i):
+// frames: n tensors (V, C, R), the roll-out's steps as it made them (R = B forward chains, then,
+// when R = 2B, B backward chains in their own order); windows (B, n, D): the ground truth,
+// D = V x C. For each window b and frame i (j = n - 1 - i), f = the forward chains' lanes,
+// g = the backward chains' lanes, x = the truth:
 //
-//   e[0, b, i] = ||f_i - x_i||^2        f = chains[b], x = windows[b]       (L_rec, forward chain)
-//   e[1, b, i] = ||g_i - x_j||^2        g = chains[B + b]                   (L_rec, backward chain)
+//   e[0, b, i] = ||f_i - x_i||^2                                            (L_rec, forward chain)
+//   e[1, b, i] = ||g_i - x_j||^2                                            (L_rec, backward chain)
 //   e[2, b, i] = ||f_i - g_j||^2                                            (L_bd)
 //
 // (rows 1 and 2 only with the backward chains), and with `steps` the step sizes of L_motion:
 //
 //   e[3, b, i] = ||f_i - f_{i-1}||^2,  e[4, b, i] = ||g_i - g_{i-1}||^2,  e[5, b, i] = ||x_i - x_{i-1}||^2
 //
-// (zero at i = 0; row 4 only with the backward chains). Written with torch operators, these terms
-// cost about 25 passes over (B, n, V, C) tensors forward and backward (differences, squares,
-// flipped copies, zero-filled slice gradients, accumulations; 78 MB each on the horse); here the
-// forward reads each frame once and the backward reads them once and writes the two gradients:
+// (zero at i = 0; row 4 only with the backward chains). The backward writes each frame's
+// gradient in the frame's own layout (V, C, R), the one the roll-out's backward adds it to:
 //
-//   d chains[b, i]     = 2 ge[0, b, i] (f_i - x_i) + 2 ge[2, b, i] (f_i - g_j)
-//   d chains[B + b, j] = 2 ge[1, b, j] (g_j - x_i) - 2 ge[2, b, i] (f_i - g_j)
+//   d f_i = 2 ge[0, b, i] (f_i - x_i) + 2 ge[2, b, i] (f_i - g_j)
+//   d g_i = 2 ge[1, b, i] (g_i - x_j) - 2 ge[2, b, j] (f_j - g_i)
 //
 // plus, with `steps`, 2 ge[3, b, i] (f_i - f_{i-1}) - 2 ge[3, b, i+1] (f_{i+1} - f_i) (and the
 // same with row 4 for g); the windows get no gradient (row 5's is ignored).
 //
-// Sums: float SIMD partial sums over blocks of BLOCK values, the blocks added in double, in a
-// fixed order (the same bits with any number of threads).
+// Why this layout: the loss used to read the frames stacked chain-major (R, n, V, C): a stack
+// of all frames forward (155 MB on the horse) and a transposing copy of each frame's gradient
+// backward (together about 40 ms an iteration). Here the work goes by chunks of K values of
+// every frame: within a chunk all n frames' slices (and the truth's, transposed to lanes) stay
+// in cache, so each frame is read once from memory however many terms use it, and the per-chain
+// sums fall out lane by lane (lanes = chains).
+//
+// Sums: per chunk (fixed size, whatever the thread count) in float, the chunks added in double
+// in order: the same bits with any number of threads.
 
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
+#include <cstdint>
+#ifdef __AVX__
+#include <immintrin.h>
+#endif
 #include <vector>
 
 namespace {
 
-typedef float v16 __attribute__((vector_size(64)));
+constexpr int64_t K = 128;  // values of each frame per chunk
+constexpr int ROWS = 6;     // error rows kept per chunk
 
-inline v16 load(const float* p) { v16 r; __builtin_memcpy(&r, p, sizeof(v16)); return r; }
-inline void store(float* p, v16 v) { __builtin_memcpy(p, &v, sizeof(v16)); }
-inline float lanes_sum(v16 v) {
-  float s = 0.f;
-  for (int l = 0; l < 16; ++l) s += v[l];
-  return s;
-}
-constexpr int64_t BLOCK = 1024;  // values per float partial sum
+struct FrameSet {
+  std::vector<const float*> frame;  // n pointers to (D, R)
+  int64_t n, D, R, B;
+  bool both;
+};
 
-// sum ||a - b||^2 over D values
-double squared_distance(const float* a, const float* b, int64_t D) {
-  double total = 0.0;
-  for (int64_t k0 = 0; k0 < D; k0 += BLOCK) {
-    const int64_t k1 = std::min(D, k0 + BLOCK);
-    v16 acc = v16{};
-    int64_t k = k0;
-    for (; k + 16 <= k1; k += 16) {
-      const v16 d = load(a + k) - load(b + k);
-      acc += d * d;
-    }
-    float s = lanes_sum(acc);
-    for (; k < k1; ++k) s += (a[k] - b[k]) * (a[k] - b[k]);
-    total += s;
+FrameSet frame_set(const std::vector<torch::Tensor>& frames, const torch::Tensor& windows) {
+  TORCH_CHECK(windows.dim() == 3 && windows.is_contiguous() && windows.scalar_type() == torch::kFloat &&
+                  windows.device().is_cpu(),
+              "frame_errors: windows must be a contiguous float32 CPU tensor (B, n, D)");
+  const int64_t B = windows.size(0), n = windows.size(1), D = windows.size(2);
+  TORCH_CHECK(int64_t(frames.size()) == n && n > 0, "frame_errors: ", frames.size(), " frames for windows of ", n);
+  const int64_t R = frames[0].size(-1);
+  TORCH_CHECK(R == B || R == 2 * B, "frame_errors: frames must have B or 2B chains (last dimension)");
+  FrameSet fs{{}, n, D, R, B, R == 2 * B};
+  for (const auto& f : frames) {
+    TORCH_CHECK(f.is_contiguous() && f.scalar_type() == torch::kFloat && f.device().is_cpu() && f.numel() == D * R &&
+                    f.size(-1) == R,
+                "frame_errors: every frame must be a contiguous float32 CPU tensor (V, C, R) of D x R values");
+    fs.frame.push_back(f.data_ptr<float>());
   }
-  return total;
+  return fs;
 }
 
-void check(const torch::Tensor& chains, const torch::Tensor& windows) {
-  TORCH_CHECK(chains.dim() == 3 && windows.dim() == 3 && chains.is_contiguous() && windows.is_contiguous() &&
-                  chains.scalar_type() == torch::kFloat && windows.scalar_type() == torch::kFloat &&
-                  chains.device().is_cpu() && windows.device().is_cpu(),
-              "frame_errors: chains and windows must be contiguous float32 CPU tensors (R, n, D), (B, n, D)");
-  const int64_t B = windows.size(0);
-  TORCH_CHECK(chains.size(0) == B || chains.size(0) == 2 * B, "frame_errors: chains must have B or 2B rows");
-  TORCH_CHECK(chains.size(1) == windows.size(1) && chains.size(2) == windows.size(2),
-              "frame_errors: chains and windows differ in frames or values per frame");
+// The truth of values [k0, k0 + kn) of every frame, lanes = windows: tb[(i K + k) B + b]
+void truth_lanes(const float* w, const FrameSet& fs, int64_t k0, int64_t kn, float* tb) {
+  const int64_t n = fs.n, B = fs.B;
+  for (int64_t i = 0; i < n; ++i)
+    for (int64_t b = 0; b < B; ++b) {
+      const float* src = w + (b * n + i) * fs.D + k0;
+      float* dst = tb + i * K * B + b;
+      for (int64_t k = 0; k < kn; ++k) dst[k * B] = src[k];
+    }
 }
+
+// Error sums of lanes [b0, b0 + G) over one chunk: part[(i ROWS + row) B + b]
+template <int G, bool BOTH, bool STEPS>
+void chunk_errors(const FrameSet& fs, const float* tb, int64_t b0, int64_t k0, int64_t kn, float* part) {
+  const int64_t n = fs.n, R = fs.R, B = fs.B;
+  for (int64_t i = 0; i < n; ++i) {
+    const int64_t j = n - 1 - i, ip = i > 0 ? i - 1 : 0;
+    const float* fi = fs.frame[i] + k0 * R;
+    const float* fj = fs.frame[j] + k0 * R;
+    const float* fp = fs.frame[ip] + k0 * R;
+    const float *xi = tb + i * K * B, *xj = tb + j * K * B, *xp = tb + ip * K * B;
+    float s0[G] = {}, s1[G] = {}, s2[G] = {}, s3[G] = {}, s4[G] = {}, s5[G] = {};
+    for (int64_t k = 0; k < kn; ++k) {
+      const float *f = fi + k * R + b0, *x = xi + k * B + b0;
+      for (int l = 0; l < G; ++l) {
+        const float d = f[l] - x[l];
+        s0[l] += d * d;
+      }
+      if (BOTH) {
+        const float *g = f + B, *gj = fj + k * R + B + b0, *y = xj + k * B + b0;
+        for (int l = 0; l < G; ++l) {
+          const float d1 = g[l] - y[l], d2 = f[l] - gj[l];
+          s1[l] += d1 * d1;
+          s2[l] += d2 * d2;
+        }
+      }
+      if (STEPS) {
+        const float *f0 = fp + k * R + b0, *x0 = xp + k * B + b0;
+        for (int l = 0; l < G; ++l) {
+          const float d3 = f[l] - f0[l], d5 = x[l] - x0[l];
+          s3[l] += d3 * d3;
+          s5[l] += d5 * d5;
+        }
+        if (BOTH) {
+          const float *g = f + B, *g0 = f0 + B;
+          for (int l = 0; l < G; ++l) {
+            const float d4 = g[l] - g0[l];
+            s4[l] += d4 * d4;
+          }
+        }
+      }
+    }
+    float* out = part + i * ROWS * B + b0;
+    for (int l = 0; l < G; ++l) {
+      out[0 * B + l] = s0[l];
+      out[1 * B + l] = s1[l];
+      out[2 * B + l] = s2[l];
+      out[3 * B + l] = s3[l];  // frame 0 against itself: 0
+      out[4 * B + l] = s4[l];
+      out[5 * B + l] = s5[l];
+    }
+  }
+}
+
+// G lanes as one value: 8 as a SIMD vector (unaligned loads; streaming stores, see below), 1 as a float
+typedef float v8 __attribute__((vector_size(32)));
+typedef float v8u __attribute__((vector_size(32), aligned(4)));
+template <int G> struct Lanes;
+template <> struct Lanes<8> {
+  typedef v8 T;
+  static T load(const float* p) { return *reinterpret_cast<const v8u*>(p); }
+  static T splat(float s) { return s - T{}; }
+  // The gradients (310 MB on the horse) are read only when the roll-out's backward reaches their
+  // frame, long after: written past the cache when aligned (no read of the lines first)
+  static void store(float* p, T v) {
+#ifdef __AVX__
+    if ((reinterpret_cast<uintptr_t>(p) & 31) == 0) return _mm256_stream_ps(p, reinterpret_cast<__m256>(v));
+#endif
+    *reinterpret_cast<v8u*>(p) = v;
+  }
+};
+template <> struct Lanes<1> {
+  typedef float T;
+  static T load(const float* p) { return *p; }
+  static T splat(float s) { return s; }
+  static void store(float* p, T v) { *p = v; }
+};
+
+// Frame i's gradient, lanes [b0, b0 + G) (and B + b0 ...), values [k0, k0 + kn): into out (D, R)
+template <int G, bool BOTH, bool STEPS>
+void chunk_gradient(const FrameSet& fs, const float* tb, const float* ge, int64_t i, int64_t b0, int64_t k0,
+                    int64_t kn, float* out) {
+  typedef Lanes<G> L;
+  typedef typename L::T T;
+  const int64_t n = fs.n, R = fs.R, B = fs.B, j = n - 1 - i;
+  const int64_t ip = i > 0 ? i - 1 : i, in = i < n - 1 ? i + 1 : i;
+  float c[8][G];  // the coefficients per lane: 2 ge[row, b, frame]
+  for (int l = 0; l < G; ++l) {
+    auto coef = [&](int row, int64_t t, bool used) { return used ? 2.f * ge[(row * B + b0 + l) * n + t] : 0.f; };
+    c[0][l] = coef(0, i, true);
+    c[1][l] = coef(1, i, BOTH);
+    c[2][l] = coef(2, i, BOTH);
+    c[3][l] = coef(2, j, BOTH);
+    c[4][l] = coef(3, i, STEPS && i > 0);  // the step into frame i
+    c[5][l] = coef(3, i + 1, STEPS && i < n - 1);  // the step out of it
+    c[6][l] = coef(4, i, STEPS && BOTH && i > 0);
+    c[7][l] = coef(4, i + 1, STEPS && BOTH && i < n - 1);
+  }
+  T a[8];
+  for (int r = 0; r < 8; ++r) a[r] = G == 1 ? L::splat(c[r][0]) : L::load(c[r]);
+  const float* fi = fs.frame[i] + k0 * R;
+  const float* fj = fs.frame[j] + k0 * R;
+  const float* fp = fs.frame[ip] + k0 * R;
+  const float* fn = fs.frame[in] + k0 * R;
+  const float *xi = tb + i * K * B, *xj = tb + j * K * B;
+  out += k0 * R;
+  for (int64_t k = 0; k < kn; ++k) {
+    const int64_t o = k * R + b0;
+    const T f = L::load(fi + o), x = L::load(xi + k * B + b0);
+    T gf = a[0] * (f - x);
+    if (BOTH) gf += a[2] * (f - L::load(fj + o + B));
+    if (STEPS) gf += a[4] * (f - L::load(fp + o)) - a[5] * (L::load(fn + o) - f);
+    L::store(out + o, gf);
+    if (BOTH) {
+      const T g = L::load(fi + o + B);
+      T gg = a[1] * (g - L::load(xj + k * B + b0)) - a[3] * (L::load(fj + o) - g);
+      if (STEPS) gg += a[6] * (g - L::load(fp + o + B)) - a[7] * (L::load(fn + o + B) - g);
+      L::store(out + o + B, gg);
+    }
+  }
+}
+
+// every lane group of B: 8 lanes at a time (vectorised), then one at a time
+template <template <int, bool, bool> class Op, typename... Args>
+void by_lanes(const FrameSet& fs, bool steps, Args... args) {
+  int64_t b0 = 0;
+  auto run = [&](auto g) {
+    constexpr int G = decltype(g)::value;
+    if (fs.both && steps) Op<G, true, true>::run(fs, b0, args...);
+    else if (fs.both) Op<G, true, false>::run(fs, b0, args...);
+    else if (steps) Op<G, false, true>::run(fs, b0, args...);
+    else Op<G, false, false>::run(fs, b0, args...);
+  };
+  for (; b0 + 8 <= fs.B; b0 += 8) run(std::integral_constant<int, 8>{});
+  for (; b0 < fs.B; ++b0) run(std::integral_constant<int, 1>{});
+}
+
+template <int G, bool BOTH, bool STEPS> struct ErrorsOp {
+  static void run(const FrameSet& fs, int64_t b0, const float* tb, int64_t k0, int64_t kn, float* part) {
+    chunk_errors<G, BOTH, STEPS>(fs, tb, b0, k0, kn, part);
+  }
+};
+template <int G, bool BOTH, bool STEPS> struct GradientOp {
+  static void run(const FrameSet& fs, int64_t b0, const float* tb, const float* ge, int64_t i, int64_t k0, int64_t kn,
+                  float* out) {
+    chunk_gradient<G, BOTH, STEPS>(fs, tb, ge, i, b0, k0, kn, out);
+  }
+};
 
 }  // namespace
 
 // -> (3, B, n) float32, (6, B, n) with steps (rows 1, 2, 4 zero without backward chains)
-torch::Tensor frame_errors(torch::Tensor chains, torch::Tensor windows, bool steps) {
-  check(chains, windows);
-  const int64_t B = windows.size(0), n = windows.size(1), D = windows.size(2);
-  const bool both = chains.size(0) == 2 * B;
-  auto e = torch::zeros({steps ? 6 : 3, B, n}, windows.options());
-  const float* c = chains.data_ptr<float>();
-  const float* x = windows.data_ptr<float>();
-  float* out = e.data_ptr<float>();
-  at::parallel_for(0, B * n, 1, [&](int64_t t0, int64_t t1) {
-    for (int64_t t = t0; t < t1; ++t) {
-      const int64_t b = t / n, i = t % n, j = n - 1 - i;
-      const float* f = c + (b * n + i) * D;
-      out[b * n + i] = float(squared_distance(f, x + (b * n + i) * D, D));
-      if (both) {
-        const float* g = c + ((B + b) * n + j) * D;
-        out[(B + b) * n + j] = float(squared_distance(g, x + (b * n + i) * D, D));
-        out[(2 * B + b) * n + i] = float(squared_distance(f, g, D));
-        if (steps && j > 0) out[(4 * B + b) * n + j] = float(squared_distance(g, g - D, D));
-      }
-      if (steps && i > 0) {
-        out[(3 * B + b) * n + i] = float(squared_distance(f, f - D, D));
-        out[(5 * B + b) * n + i] = float(squared_distance(x + (b * n + i) * D, x + (b * n + i - 1) * D, D));
-      }
+torch::Tensor frame_errors(std::vector<torch::Tensor> frames, torch::Tensor windows, bool steps) {
+  const FrameSet fs = frame_set(frames, windows);
+  const int64_t n = fs.n, B = fs.B, chunks = (fs.D + K - 1) / K;
+  std::vector<float> part(chunks * n * ROWS * B);
+  const float* w = windows.data_ptr<float>();
+  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+    std::vector<float> tb(n * K * B);
+    for (int64_t c = c0; c < c1; ++c) {
+      const int64_t k0 = c * K, kn = std::min(K, fs.D - k0);
+      truth_lanes(w, fs, k0, kn, tb.data());
+      by_lanes<ErrorsOp>(fs, steps, (const float*)tb.data(), k0, kn, part.data() + c * n * ROWS * B);
     }
   });
+  const int rows = steps ? 6 : 3;
+  auto e = torch::empty({rows, B, n}, windows.options());
+  float* out = e.data_ptr<float>();
+  for (int r = 0; r < rows; ++r)
+    for (int64_t b = 0; b < B; ++b)
+      for (int64_t i = 0; i < n; ++i) {
+        double total = 0.0;
+        for (int64_t c = 0; c < chunks; ++c) total += part[((c * n + i) * ROWS + r) * B + b];
+        out[(r * B + b) * n + i] = float(total);
+      }
   return e;
 }
 
-namespace {
-
-// grad[k] += a_prev (y_k - y_{k-1}) - a_next (y_{k+1} - y_k) over D values (the step-size terms
-// of frame k; a_prev = 0 at the first frame, a_next = 0 at the last, where the neighbour is unused)
-void add_step_gradient(float* grad, const float* y, int64_t D, float a_prev, float a_next, bool first, bool last) {
-  const float* prev = first ? y : y - D;
-  const float* next = last ? y : y + D;
-  const v16 ap = v16{} + a_prev, an = v16{} + a_next;
-  int64_t k = 0;
-  for (; k + 16 <= D; k += 16) {
-    const v16 yv = load(y + k);
-    store(grad + k, load(grad + k) + ap * (yv - load(prev + k)) - an * (load(next + k) - yv));
-  }
-  for (; k < D; ++k) grad[k] += a_prev * (y[k] - prev[k]) - a_next * (next[k] - y[k]);
-}
-
-}  // namespace
-
-// ge (3 or 6, B, n): the gradient of frame_errors' output -> the gradient of chains (R, n, D)
-torch::Tensor frame_errors_backward(torch::Tensor ge, torch::Tensor chains, torch::Tensor windows) {
-  check(chains, windows);
-  const int64_t B = windows.size(0), n = windows.size(1), D = windows.size(2);
-  const bool both = chains.size(0) == 2 * B;
+// ge (3 or 6, B, n): the gradient of frame_errors' output -> the gradients of frames[need[0]],
+// frames[need[1]], ... (each (V, C, R) like its frame)
+std::vector<torch::Tensor> frame_errors_backward(torch::Tensor ge, std::vector<torch::Tensor> frames,
+                                                 torch::Tensor windows, std::vector<int64_t> need) {
+  const FrameSet fs = frame_set(frames, windows);
+  const int64_t n = fs.n, B = fs.B, chunks = (fs.D + K - 1) / K;
   auto gec = ge.to(torch::kFloat).contiguous();
   TORCH_CHECK(gec.dim() == 3 && (gec.size(0) == 3 || gec.size(0) == 6) && gec.size(1) == B && gec.size(2) == n,
               "frame_errors_backward: the gradient must be (3, B, n) or (6, B, n)");
   const bool steps = gec.size(0) == 6;
-  auto grad = torch::empty_like(chains);
-  const float* c = chains.data_ptr<float>();
-  const float* x = windows.data_ptr<float>();
+  std::vector<torch::Tensor> grads;
+  std::vector<float*> out;
+  for (int64_t i : need) {
+    TORCH_CHECK(i >= 0 && i < n, "frame_errors_backward: frame ", i, " out of range");
+    grads.push_back(torch::empty_like(frames[i]));
+    out.push_back(grads.back().data_ptr<float>());
+  }
+  const float* w = windows.data_ptr<float>();
   const float* G = gec.data_ptr<float>();
-  float* out = grad.data_ptr<float>();
-  at::parallel_for(0, B * n, 1, [&](int64_t t0, int64_t t1) {
-    for (int64_t t = t0; t < t1; ++t) {
-      const int64_t b = t / n, i = t % n, j = n - 1 - i;
-      const float* f = c + (b * n + i) * D;
-      const float* xi = x + (b * n + i) * D;
-      float* gf = out + (b * n + i) * D;
-      const float a_rec = 2.f * G[b * n + i];
-      if (both) {
-        const float* g = c + ((B + b) * n + j) * D;
-        float* gg = out + ((B + b) * n + j) * D;
-        const float a_bd = 2.f * G[(2 * B + b) * n + i], a_back = 2.f * G[(B + b) * n + j];
-        const v16 ar = v16{} + a_rec, ab = v16{} + a_bd, ak = v16{} + a_back;
-        int64_t k = 0;
-        for (; k + 16 <= D; k += 16) {
-          const v16 fv = load(f + k), gv = load(g + k), xv = load(xi + k);
-          const v16 dfg = fv - gv;
-          store(gf + k, ar * (fv - xv) + ab * dfg);
-          store(gg + k, ak * (gv - xv) - ab * dfg);
-        }
-        for (; k < D; ++k) {
-          const float dfg = f[k] - g[k];
-          gf[k] = a_rec * (f[k] - xi[k]) + a_bd * dfg;
-          gg[k] = a_back * (g[k] - xi[k]) - a_bd * dfg;
-        }
-        if (steps)
-          add_step_gradient(gg, g, D, j > 0 ? 2.f * G[(4 * B + b) * n + j] : 0.f,
-                            j < n - 1 ? 2.f * G[(4 * B + b) * n + j + 1] : 0.f, j == 0, j == n - 1);
-      } else {
-        const v16 a = v16{} + a_rec;
-        int64_t k = 0;
-        for (; k + 16 <= D; k += 16) store(gf + k, a * (load(f + k) - load(xi + k)));
-        for (; k < D; ++k) gf[k] = a_rec * (f[k] - xi[k]);
-      }
-      if (steps)
-        add_step_gradient(gf, f, D, i > 0 ? 2.f * G[(3 * B + b) * n + i] : 0.f,
-                          i < n - 1 ? 2.f * G[(3 * B + b) * n + i + 1] : 0.f, i == 0, i == n - 1);
+  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+    std::vector<float> tb(n * K * B);
+    for (int64_t c = c0; c < c1; ++c) {
+      const int64_t k0 = c * K, kn = std::min(K, fs.D - k0);
+      truth_lanes(w, fs, k0, kn, tb.data());
+      for (size_t q = 0; q < need.size(); ++q)
+        by_lanes<GradientOp>(fs, steps, (const float*)tb.data(), G, need[q], k0, kn, out[q]);
     }
+#ifdef __AVX__
+    _mm_sfence();  // the streaming stores visible before the gradients are handed on
+#endif
   });
-  return grad;
+  return grads;
 }
 
 TORCH_LIBRARY_FRAGMENT(meshseq, m) {
