@@ -52,7 +52,8 @@ from meshseq.mesh import Topology
 from meshseq import kernels
 from meshseq.kernels import MeshConvFused, keep_freed_memory, ring_mean
 from meshseq.model import BDLSTM, ModelConfig, NeighborMean, count_step_flops
-from meshseq.train import TrainConfig, WindowLoss, autocast, freeze_setup_objects, fused_adam, resolve_device
+from meshseq.train import (TrainConfig, WindowLoss, autocast, freeze_setup_objects, fused_adam, gather_frames,
+                           resolve_device)
 
 DEFAULT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "horse-gallop.npz"
 
@@ -164,7 +165,7 @@ def make_iteration(cfg, topo, frames, sampler, rng, device, batch, precision="fl
 
     def iteration():
         rows = sampler.sample(rng, batch)
-        w = frames[torch.from_numpy(rows).to(device)]
+        w = gather_frames(frames, torch.from_numpy(rows).to(device))
         opt.zero_grad(set_to_none=True)
         with autocast(device, precision):
             total, _ = objective(w)

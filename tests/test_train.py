@@ -419,3 +419,27 @@ def test_loaders_refuse_non_finite_weights_and_commands_write_no_non_finite_outp
         lines = [line for line in err.splitlines() if line.startswith("meshseq: error:")]
         assert len(lines) == 1 and "model.fc.weight: non-finite values" in lines[0] and "Traceback" not in err
         assert not out.exists()
+
+
+def test_squared_norm_is_the_sum_of_squares_with_autograds_gradient():
+    from meshseq.train import squared_norm
+
+    torch.manual_seed(0)
+    for shape in [(128, 3000), (18, 9), (512, 128)]:
+        p = (torch.randn(*shape) * 0.01 + 0.003).requires_grad_()
+        ref = p.square().sum()
+        value = squared_norm(p)
+        assert float(value.detach()) == pytest.approx(float(p.detach().double().square().sum()), rel=1e-6)
+        (g,) = torch.autograd.grad(3.0 * value, p)
+        (g_ref,) = torch.autograd.grad(3.0 * ref, p)
+        assert torch.equal(g, g_ref)
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # stays float32 under --precision bf16
+        assert squared_norm(p).dtype == torch.float32
+
+
+def test_gather_frames_is_advanced_indexing():
+    from meshseq.train import gather_frames
+
+    frames = torch.randn(10, 7, 9)
+    rows = torch.tensor([[3, 4, 5], [9, 8, 7]])
+    assert torch.equal(gather_frames(frames, rows), frames[rows])

@@ -364,6 +364,32 @@ def kl_weight(w_kl: float, n_vertices: int, kl_scale: str) -> float:
     return float(w_kl) * (n_vertices / KL_REFERENCE_VERTICES if kl_scale == "vertices" else 1.0)
 
 
+class _SquaredNorm(torch.autograd.Function):
+    """``sum(p^2)`` as one pass: the dot product of each row with itself (one batched matmul),
+    the rows' sums added; backward ``2 g p``, the same values as autograd's ``p.square().sum()``
+    (which wrote and read the square: 10.6 against 4.0 ms forward + backward for the horse's
+    39 MB FC weight). Row by row, the sum keeps ``square().sum()``'s accuracy (a single dot of
+    all 9.7 million values was off by 8e-5 relative; rows: 4e-7)."""
+
+    @staticmethod
+    @torch.autocast("cpu", enabled=False)
+    @torch.autocast("cuda", enabled=False)
+    def forward(ctx, p):  # float32 under --precision bf16 too (a sum of 9.7 million squares)
+        ctx.save_for_backward(p)
+        rows = p.reshape(p.shape[0] if p.dim() else 1, 1, -1)
+        return torch.bmm(rows, rows.transpose(1, 2)).sum()
+
+    @staticmethod
+    def backward(ctx, g):
+        (p,) = ctx.saved_tensors
+        return p * (2 * g)
+
+
+def squared_norm(p: torch.Tensor) -> torch.Tensor:
+    """``p.square().sum()`` (L_2's term for one weight) in one pass; see ``_SquaredNorm``."""
+    return _SquaredNorm.apply(p)
+
+
 def has_backward_chains(out: dict) -> bool:
     """Whether ``BDLSTM.forward``'s output (or a dict like it) has backward chains, without making
     a ``RolloutOutput`` stack its frames to say so."""
@@ -466,7 +492,7 @@ class WindowLoss(nn.Module):
             if out["backward"] is not None:
                 back_rows = None if rows is None else rows.flip(1)
                 terms["vertex"] = terms["vertex"] + self.vertex_loss(out["backward"], windows.flip(1), back_rows)
-        terms["l2"] = sum(p.square().sum() for p in self.model.weight_parameters())
+        terms["l2"] = sum(squared_norm(p) for p in self.model.weight_parameters())
         total = sum(self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) != 0)
         return total, {k: v.detach() for k, v in terms.items()}
 
@@ -775,6 +801,13 @@ def fit_window(config: TrainConfig, splits: list[Split], log=lambda msg: None) -
     return replace(config, window=window)
 
 
+def gather_frames(frames: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """``frames[rows]``: ``(T, ...)`` frames at indices ``rows`` (any shape) -> ``rows.shape + (...)``,
+    as one ``index_select`` (a row copy each: 5.4 against 10.8 ms for advanced indexing, 8 x 32
+    frames of the horse)."""
+    return frames.index_select(0, rows.reshape(-1)).view(*rows.shape, *frames.shape[1:])
+
+
 def training_windows(frames: torch.Tensor, sampler: WindowSampler, rng: np.random.Generator,
                      config: TrainConfig, share: slice = slice(None)) -> tuple[torch.Tensor, torch.Tensor | None]:
     """This process's ``share`` of one iteration's ``(batch, window, V, 9)`` windows of the
@@ -784,7 +817,7 @@ def training_windows(frames: torch.Tensor, sampler: WindowSampler, rng: np.rando
     Returns ``(windows, rows)``, ``rows`` ``(batch, window)`` the frames' indices (None for windows
     played at other speeds: their frames are interpolations)."""
     def rows(r: np.ndarray) -> torch.Tensor:
-        return frames[torch.from_numpy(r[share]).to(frames.device)]
+        return gather_frames(frames, torch.from_numpy(r[share]).to(frames.device))
 
     if config.speed_augment <= 1:
         r = sampler.sample(rng, config.batch)
