@@ -168,6 +168,10 @@ def test_fc_products_match_torch(L, N, B, with_bias):
     assert wx.shape == (L, B) and wtx.shape == (N, B)
     for got, ref in ((wx, ref_wx), (wtx, ref_wtx)):  # float32 rounding of sums of N terms
         assert float((got.double() - ref).abs().max() / ref.abs().max()) <= 4e-6
+    if not with_bias:  # the decoder backward's product with x's row sums (its bias gradient)
+        wx2, sums = kernels.fc_product_and_row_sums(W, x)
+        assert torch.equal(wx2, wx) and sums.shape == (N,)
+        torch.testing.assert_close(sums, x.sum(1), rtol=1e-5, atol=1e-5)
 
 
 def test_fc_products_fall_back_to_torch_for_other_shapes_and_dtypes():

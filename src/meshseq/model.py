@@ -54,7 +54,7 @@ import torch
 from torch import nn
 
 from meshseq.errors import MeshseqError
-from meshseq.kernels import MeshConvStack, fc_product, fc_transposed_product
+from meshseq.kernels import MeshConvStack, fc_product, fc_product_and_row_sums, fc_transposed_product
 from meshseq.mesh import Topology
 
 VARIANTS = ("bd", "std-bd", "uni")
@@ -465,6 +465,9 @@ class _Decode(torch.autograd.Function):
         h, weight = ctx.saved_tensors
         ctx.bank.left.append(h.to(weight.dtype))
         ctx.bank.right.append(g.to(weight.dtype))  # dW = h^T g^T = (g h)^T
+        if weight.dtype == g.dtype:
+            gh, g_bias = fc_product_and_row_sums(weight, g)
+            return gh.t(), None, g_bias, None
         return fc_product(weight, g).t().to(g.dtype), None, g.sum(1), None
 
 

@@ -34,6 +34,23 @@ typedef float v8 __attribute__((vector_size(32)));
 template <typename T> inline T load(const float* p) { T r; __builtin_memcpy(&r, p, sizeof(T)); return r; }
 template <typename T> inline void store(float* p, T v) { __builtin_memcpy(p, &v, sizeof(T)); }
 
+typedef float v4 __attribute__((vector_size(16)));
+
+// the lanes' sum by halves (a pairwise tree: 4 vector adds, not 15 dependent scalar ones)
+inline float lanes_sum(v4 v) { return (v[0] + v[2]) + (v[1] + v[3]); }
+inline float lanes_sum(v8 v) {
+  v4 lo, hi;
+  __builtin_memcpy(&lo, &v, sizeof(v4));
+  __builtin_memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof(v4), sizeof(v4));
+  return lanes_sum(lo + hi);
+}
+inline float lanes_sum(v16 v) {
+  v8 lo, hi;
+  __builtin_memcpy(&lo, &v, sizeof(v8));
+  __builtin_memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof(v8), sizeof(v8));
+  return lanes_sum(lo + hi);
+}
+
 constexpr int64_t NCHUNK_COLS = 2048;  // columns of W per partial sum of fc_wx (X's chunk: 128 KB at B = 16)
 // fc_wtx reads one cache line from each of L rows in turn: more streams than the hardware
 // prefetcher follows, so it asks for the line PREFETCH floats (4 lines) ahead in the same row
@@ -60,8 +77,9 @@ inline void wx_rows(const float* Wm, int64_t N, const float* X, int64_t l0, int6
   }
 }
 
+// x_sums (optional, N): each row of X summed over its B columns, from the chunk while it is in cache
 template <typename T, int W_>
-void wx(const float* Wm, const float* X, float* partial, int64_t L, int64_t N, int B) {
+void wx(const float* Wm, const float* X, float* partial, float* x_sums, int64_t L, int64_t N, int B) {
   const int64_t nchunks = (N + NCHUNK_COLS - 1) / NCHUNK_COLS;
   at::parallel_for(0, nchunks, 1, [&](int64_t k0, int64_t k1) {
     for (int64_t k = k0; k < k1; ++k) {
@@ -70,6 +88,12 @@ void wx(const float* Wm, const float* X, float* partial, int64_t L, int64_t N, i
       int64_t l0 = 0;
       for (; l0 + 8 <= L; l0 += 8) wx_rows<T, W_, 8>(Wm, N, X, l0, n0, n1, B, p);
       for (; l0 < L; ++l0) wx_rows<T, W_, 1>(Wm, N, X, l0, n0, n1, B, p);
+      if (x_sums)
+        for (int64_t n = n0; n < n1; ++n) {
+          T acc = load<T>(X + n * B);
+          for (int b0 = W_; b0 < B; b0 += W_) acc += load<T>(X + n * B + b0);
+          x_sums[n] = lanes_sum(acc);
+        }
     }
   });
 }
@@ -124,8 +148,10 @@ int tile_width(int64_t B) {
 
 }  // namespace
 
-// W (L, N), X (N, B) -> (L, B)
-torch::Tensor fc_wx(torch::Tensor weight, torch::Tensor x, std::optional<torch::Tensor> bias) {
+namespace {
+
+// W (L, N), X (N, B) -> (L, B); x_sums: X's row sums (N) into it when defined
+torch::Tensor wx_product(torch::Tensor weight, torch::Tensor x, std::optional<torch::Tensor> bias, float* x_sums) {
   const int64_t L = weight.size(0), N = weight.size(1), B = x.size(1);
   check(weight, "weight", L, N);
   check(x, "x", N, B);
@@ -133,8 +159,8 @@ torch::Tensor fc_wx(torch::Tensor weight, torch::Tensor x, std::optional<torch::
   const int W_ = tile_width(B);
   const int64_t nchunks = (N + NCHUNK_COLS - 1) / NCHUNK_COLS;
   auto partial = torch::empty({nchunks, L, B}, x.options());
-  if (W_ == 16) wx<v16, 16>(weight.data_ptr<float>(), x.data_ptr<float>(), partial.data_ptr<float>(), L, N, B);
-  else wx<v8, 8>(weight.data_ptr<float>(), x.data_ptr<float>(), partial.data_ptr<float>(), L, N, B);
+  if (W_ == 16) wx<v16, 16>(weight.data_ptr<float>(), x.data_ptr<float>(), partial.data_ptr<float>(), x_sums, L, N, B);
+  else wx<v8, 8>(weight.data_ptr<float>(), x.data_ptr<float>(), partial.data_ptr<float>(), x_sums, L, N, B);
   auto out = torch::empty({L, B}, x.options());
   const float* p = partial.data_ptr<float>();
   float* o = out.data_ptr<float>();
@@ -149,6 +175,22 @@ torch::Tensor fc_wx(torch::Tensor weight, torch::Tensor x, std::optional<torch::
   if (b)
     for (int64_t i = 0; i < L * B; ++i) o[i] += b[i / B];
   return out;
+}
+
+}  // namespace
+
+// W (L, N), X (N, B) -> (L, B)
+torch::Tensor fc_wx(torch::Tensor weight, torch::Tensor x, std::optional<torch::Tensor> bias) {
+  return wx_product(weight, x, bias, nullptr);
+}
+
+// W (L, N), X (N, B) -> (W X (L, B), X's row sums (N)): the decoder's backward, where X is the
+// gradient of the decoder's FC output and its row sums the decoder bias's gradient (a separate
+// torch sum read the 4.9 MB X once more per step)
+std::vector<torch::Tensor> fc_wx_row_sums(torch::Tensor weight, torch::Tensor x) {
+  auto sums = torch::empty({x.size(0)}, x.options());
+  auto out = wx_product(weight, x, std::nullopt, sums.data_ptr<float>());
+  return {out, sums};
 }
 
 // W (L, N), H (L, B) -> (N, B)
@@ -167,5 +209,6 @@ torch::Tensor fc_wtx(torch::Tensor weight, torch::Tensor h, std::optional<torch:
 
 TORCH_LIBRARY_FRAGMENT(meshseq, m) {
   m.def("fc_wx", &fc_wx);
+  m.def("fc_wx_row_sums", &fc_wx_row_sums);
   m.def("fc_wtx", &fc_wtx);
 }
