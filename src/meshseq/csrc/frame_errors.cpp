@@ -44,7 +44,7 @@
 
 namespace {
 
-constexpr int64_t K = 128;  // values of each frame per chunk
+constexpr int64_t K = 256;  // values of each frame per chunk
 constexpr int ROWS = 6;     // error rows kept per chunk
 
 struct FrameSet {
