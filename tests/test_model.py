@@ -107,6 +107,31 @@ def test_shapes_of_every_variant(limb):
         assert m.decode(mu).shape == (3, V, 9)
 
 
+def test_rollout_output_stacks_on_demand_and_picks_frames_with_their_gradients(limb):
+    V = limb.n_vertices
+    m = make(limb, "bd")
+    w = torch.randn(3, 5, V, 9) * 0.1
+    torch.manual_seed(0)
+    out = m(w, sample=False)
+    assert set(out) == {"frames", "mu", "logvar"}  # nothing stacked yet
+    assert len(out["frames"]) == 5 and out["frames"][2].shape == (V, 9, 6)
+    torch.manual_seed(0)
+    ref = m(w, sample=False)
+    picks = [1, 4]
+    picked = out.frames_at(picks)
+    torch.testing.assert_close(picked, ref["chains"][:, picks])
+    torch.testing.assert_close(ref["forward"], ref["chains"][:3])
+    torch.testing.assert_close(ref["backward"], ref["chains"][3:])
+    weights = torch.randn_like(picked)
+    params = [p for p in m.parameters() if p.requires_grad]
+    got = torch.autograd.grad((picked * weights).sum(), params, allow_unused=True)
+    want = torch.autograd.grad((ref["chains"][:, picks] * weights).sum(), params, allow_unused=True)
+    for a, b in zip(got, want):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
 def test_step_is_x_plus_decoded_lstm_output(limb):
     m = make(limb)
     x = torch.randn(2, limb.n_vertices, 9) * 0.1

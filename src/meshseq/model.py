@@ -539,6 +539,13 @@ class RolloutOutput(dict):
         if n_forward is None:
             self["backward"] = None
 
+    def frames_at(self, indices: list[int]) -> torch.Tensor:
+        """The chains' frames ``indices`` only, stacked: ``(R, len(indices), V, C)`` (``chains[:, indices]``
+        without stacking the others; L_vertex reads 4 frames of 32)."""
+        if "chains" in self:
+            return self["chains"][:, indices]
+        return stack_frames([self["frames"][i] for i in indices])
+
     def __missing__(self, key):
         if key == "chains":
             self["chains"] = stack_frames(self["frames"])

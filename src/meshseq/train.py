@@ -488,10 +488,13 @@ class WindowLoss(nn.Module):
         if motion:
             terms["motion"] = motion_loss(out, windows, errors)
         if self.vertex_loss is not None:
-            terms["vertex"] = self.vertex_loss(out["forward"], windows, rows)
-            if out["backward"] is not None:
+            # only the picked frames of the chains, stacked: (B or 2B, k, V, C)
+            picked = out.frames_at(self.vertex_loss.picks(windows.shape[1]))
+            B = windows.shape[0]
+            terms["vertex"] = self.vertex_loss.of_picked(picked[:B], windows, rows)
+            if has_backward_chains(out):
                 back_rows = None if rows is None else rows.flip(1)
-                terms["vertex"] = terms["vertex"] + self.vertex_loss(out["backward"], windows.flip(1), back_rows)
+                terms["vertex"] = terms["vertex"] + self.vertex_loss.of_picked(picked[B:], windows.flip(1), back_rows)
         terms["l2"] = sum(squared_norm(p) for p in self.model.weight_parameters())
         total = sum(self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) != 0)
         return total, {k: v.detach() for k, v in terms.items()}

@@ -100,13 +100,24 @@ class VertexLoss(nn.Module):
     def forward(self, generated: torch.Tensor, truth: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
         """``rows`` ``(B, n)``: the training frames ``truth`` holds (its ``cache_targets`` rows),
         when known and cached; otherwise the truth's picked frames are reconstructed."""
-        pick = picked_frames(generated.shape[1], self.frames)
+        pick = self.picks(generated.shape[1])
+        return self.of_picked(generated[:, pick], truth, rows)
+
+    def picks(self, n: int) -> list[int]:
+        """The frames of an ``n``-frame chain this loss measures (``picked_frames``)."""
+        return picked_frames(n, self.frames)
+
+    def of_picked(self, ours: torch.Tensor, truth: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """``forward`` given the generated chains' picked frames only: ``ours`` ``(B, k, V, 9)``, the
+        frames ``picks(n)`` of chains over ``truth`` ``(B, n, V, 9)`` (training picks them from the
+        roll-out's frames without stacking the others)."""
+        pick = self.picks(truth.shape[1])
         # in float32 whatever the training precision: the solver takes float32 only
-        with torch.autocast(generated.device.type, enabled=False):
+        with torch.autocast(ours.device.type, enabled=False):
             if rows is not None and self.targets is not None:
                 target = self.targets[rows[:, pick].to(self.targets.device)].flatten(0, 1)
             else:
                 with torch.no_grad():
                     target = self._vertices(truth[:, pick].float())
-            ours = self._vertices(generated[:, pick].float())
+            ours = self._vertices(ours.float())
             return self.unit * (ours - target).square().sum((-2, -1)).mean()
