@@ -484,7 +484,9 @@ class _FC:
         self.fused = fused
         if self.fused:
             # (w_self, w_ring, bias) per layer, (C_out, C_in): encoder W^T, decoder W (tied)
-            self.enc = [(c.weight[: c.c_in].t(), c.weight[c.c_in :].t(), c.bias) for c in model.convs]
+            # contiguous once per roll-out (the C++ layers would copy a transposed view at every call)
+            self.enc = [(c.weight[: c.c_in].t().contiguous(), c.weight[c.c_in :].t().contiguous(), c.bias)
+                        for c in model.convs]
             K = len(model.convs)
             self.dec = [
                 (model.convs[K - 1 - k].weight[: model.convs[K - 1 - k].c_in],
