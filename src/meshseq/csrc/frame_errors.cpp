@@ -230,6 +230,24 @@ template <int G, bool BOTH, bool STEPS> struct GradientOp {
   }
 };
 
+// f(c, k0, kn, tb) for every chunk c: values [k0, k0 + kn) of each frame, tb their truth in lanes
+// (truth_lanes); threads over chunks. STREAMED: f writes with streaming stores
+template <bool STREAMED, typename F>
+void for_chunks(const FrameSet& fs, const float* w, const F& f) {
+  const int64_t chunks = (fs.D + K - 1) / K;
+  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
+    std::vector<float> tb(fs.n * K * fs.B);
+    for (int64_t c = c0; c < c1; ++c) {
+      const int64_t k0 = c * K, kn = std::min(K, fs.D - k0);
+      truth_lanes(w, fs, k0, kn, tb.data());
+      f(c, k0, kn, (const float*)tb.data());
+    }
+#ifdef __AVX__
+    if (STREAMED) _mm_sfence();  // this thread's streaming stores visible before the results are handed on
+#endif
+  });
+}
+
 }  // namespace
 
 // -> (3, B, n) float32, (6, B, n) with steps (rows 1, 2, 4 zero without backward chains)
@@ -237,14 +255,8 @@ torch::Tensor frame_errors(std::vector<torch::Tensor> frames, torch::Tensor wind
   const FrameSet fs = frame_set(frames, windows);
   const int64_t n = fs.n, B = fs.B, chunks = (fs.D + K - 1) / K;
   std::vector<float> part(chunks * n * ROWS * B);
-  const float* w = windows.data_ptr<float>();
-  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
-    std::vector<float> tb(n * K * B);
-    for (int64_t c = c0; c < c1; ++c) {
-      const int64_t k0 = c * K, kn = std::min(K, fs.D - k0);
-      truth_lanes(w, fs, k0, kn, tb.data());
-      by_lanes<ErrorsOp>(fs, steps, (const float*)tb.data(), k0, kn, part.data() + c * n * ROWS * B);
-    }
+  for_chunks<false>(fs, windows.data_ptr<float>(), [&](int64_t c, int64_t k0, int64_t kn, const float* tb) {
+    by_lanes<ErrorsOp>(fs, steps, tb, k0, kn, part.data() + c * n * ROWS * B);
   });
   const int rows = steps ? 6 : 3;
   auto e = torch::empty({rows, B, n}, windows.options());
@@ -264,7 +276,7 @@ torch::Tensor frame_errors(std::vector<torch::Tensor> frames, torch::Tensor wind
 std::vector<torch::Tensor> frame_errors_backward(torch::Tensor ge, std::vector<torch::Tensor> frames,
                                                  torch::Tensor windows, std::vector<int64_t> need) {
   const FrameSet fs = frame_set(frames, windows);
-  const int64_t n = fs.n, B = fs.B, chunks = (fs.D + K - 1) / K;
+  const int64_t n = fs.n, B = fs.B;
   auto gec = ge.to(torch::kFloat).contiguous();
   TORCH_CHECK(gec.dim() == 3 && (gec.size(0) == 3 || gec.size(0) == 6) && gec.size(1) == B && gec.size(2) == n,
               "frame_errors_backward: the gradient must be (3, B, n) or (6, B, n)");
@@ -276,19 +288,9 @@ std::vector<torch::Tensor> frame_errors_backward(torch::Tensor ge, std::vector<t
     grads.push_back(torch::empty_like(frames[i]));
     out.push_back(grads.back().data_ptr<float>());
   }
-  const float* w = windows.data_ptr<float>();
   const float* G = gec.data_ptr<float>();
-  at::parallel_for(0, chunks, 1, [&](int64_t c0, int64_t c1) {
-    std::vector<float> tb(n * K * B);
-    for (int64_t c = c0; c < c1; ++c) {
-      const int64_t k0 = c * K, kn = std::min(K, fs.D - k0);
-      truth_lanes(w, fs, k0, kn, tb.data());
-      for (size_t q = 0; q < need.size(); ++q)
-        by_lanes<GradientOp>(fs, steps, (const float*)tb.data(), G, need[q], k0, kn, out[q]);
-    }
-#ifdef __AVX__
-    _mm_sfence();  // the streaming stores visible before the gradients are handed on
-#endif
+  for_chunks<true>(fs, windows.data_ptr<float>(), [&](int64_t, int64_t k0, int64_t kn, const float* tb) {
+    for (size_t q = 0; q < need.size(); ++q) by_lanes<GradientOp>(fs, steps, tb, G, need[q], k0, kn, out[q]);
   });
   return grads;
 }
