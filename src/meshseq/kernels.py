@@ -34,9 +34,11 @@ float32: each product is one stream over ``W``, each weight broadcast against a 
 the columns (2.0 ms a product on the horse, 2 threads: about the time to read ``W`` from memory);
 BLAS ran these skinny shapes at a third to a half of that rate (see that file).
 
-The window losses' per-frame squared errors (``frame_errors``: L_rec of both chains, L_bd and
-L_motion's step sizes) run in ``csrc/frame_errors.cpp`` on CPU in float32: one pass forward, one
-backward, instead of about 25 passes of torch operators over ``(B, n, V, C)`` tensors.
+The window losses' per-frame squared errors (``frame_errors_of_frames``: L_rec of both chains,
+L_bd and L_motion's step sizes) run in ``csrc/frame_errors.cpp`` on CPU in float32, read from the
+roll-out's own vertex-major frames: one pass forward, one backward (each frame's gradient in its
+own layout), instead of about 25 passes of torch operators over ``(B, n, V, C)`` tensors and a
+stacked copy of the chains.
 """
 
 from __future__ import annotations
