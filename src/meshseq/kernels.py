@@ -198,6 +198,30 @@ def frame_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a - b).square().sum((-2, -1))
 
 
+class _StackFrames(torch.autograd.Function):
+    """``torch.stack([f.permute(2, 0, 1) for f in frames], 1)``: vertex-major frames ``(V, C, B)``
+    -> ``(B, n, V, C)``, with a backward that hands each frame a contiguous vertex-major gradient.
+
+    (Plain ``stack`` gives each frame a strided view of the ``(B, n, V, C)`` gradient; adding it to
+    the frame's other gradients, from the encoder and the residual, then ran on strided memory:
+    1.3 ms an add on the horse against 0.35 for contiguous tensors, and a copy of 1.3 ms more.)
+    """
+
+    @staticmethod
+    def forward(ctx, *frames):
+        return torch.stack([f.permute(2, 0, 1) for f in frames], 1)
+
+    @staticmethod
+    def backward(ctx, g):
+        return tuple(g[:, i].permute(1, 2, 0).contiguous() if ctx.needs_input_grad[i] else None
+                     for i in range(g.shape[1]))
+
+
+def stack_frames(frames: list[torch.Tensor]) -> torch.Tensor:
+    """Vertex-major frames ``(V, C, B)`` (a roll-out's steps) -> ``(B, n, V, C)``, contiguous."""
+    return _StackFrames.apply(*frames)
+
+
 def frame_errors_of_frames(frames: list[torch.Tensor], windows: torch.Tensor, steps: bool = False) -> torch.Tensor:
     """``frame_errors`` of a roll-out's vertex-major frames: ``frames`` ``n`` tensors ``(V, C, R)``
     (lanes: the ``B`` forward chains, then, when ``R = 2B``, the backward chains), as
@@ -211,7 +235,7 @@ def frame_errors_of_frames(frames: list[torch.Tensor], windows: torch.Tensor, st
     if (all(f.dtype == torch.float32 for f in frames) and windows.dtype == torch.float32
             and not windows.requires_grad and _use_cpu_kernels(frames[0])):
         return _FrameErrors.apply(windows.contiguous(), steps, *(f.contiguous() for f in frames))
-    return _frame_errors_torch(torch.stack([f.permute(2, 0, 1) for f in frames], 1), windows, steps)
+    return _frame_errors_torch(stack_frames(frames), windows, steps)
 
 
 def frame_errors(chains: torch.Tensor, windows: torch.Tensor, steps: bool = False) -> torch.Tensor:
