@@ -1,8 +1,8 @@
 """Benchmark: whole training iterations of this checkout against another git revision, in one process.
 
 Copies ``src/meshseq`` as it is at ``--against REV`` into a temporary folder as the package
-``meshseq_rev`` (its imports, its C++ operators' namespace and its build folder renamed, so both
-versions and both kernel builds load into one process), builds the same model on both (horse-gallop,
+``meshseq_rev`` (``revision.py``: its imports, its C++ operators' namespace and its build folder
+renamed, so both versions and both kernel builds load into one process), builds the same model on both (horse-gallop,
 bd, 8 windows x 32 frames, the paper's losses: ``benchmarks/train_speed.py``'s iteration) and
 alternates their iterations, A B B A ..., ``--pairs`` times. Prints each side's median and the
 mean of the paired differences with its standard error.
@@ -21,12 +21,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import io
-import re
 import statistics
-import subprocess
 import sys
-import tarfile
 import tempfile
 import time
 from pathlib import Path
@@ -34,30 +30,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from revision import copy_revision
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "horse-gallop.npz"
-RENAMES = [  # the package, its operators' namespace and its build folder, in Python and C++ sources
-    (r"\bfrom meshseq\b", "from meshseq_rev"),
-    (r"\bimport meshseq\b", "import meshseq_rev"),
-    (r"torch\.ops\.meshseq\b", "torch.ops.meshseq_rev"),
-    (r"TORCH_LIBRARY(_FRAGMENT)?\(meshseq,", r"TORCH_LIBRARY\1(meshseq_rev,"),
-    (r"\bmeshseq_kernels\b", "meshseq_rev_kernels"),
-]
-
-
-def copy_revision(rev: str, folder: Path) -> None:
-    """``src/meshseq`` at git revision ``rev`` as the package ``folder/meshseq_rev``."""
-    tar = subprocess.run(["git", "archive", rev, "src/meshseq"], cwd=ROOT, check=True, capture_output=True).stdout
-    with tarfile.open(fileobj=io.BytesIO(tar)) as t:
-        t.extractall(folder, filter="data")
-    package = folder / "meshseq_rev"
-    (folder / "src" / "meshseq").rename(package)
-    for path in package.rglob("*"):
-        if path.suffix in (".py", ".cpp", ".h"):
-            text = path.read_text()
-            for pattern, repl in RENAMES:
-                text = re.sub(pattern, repl, text)
-            path.write_text(text)
 
 
 def make_iteration(package: str, batch: int, threads: int):

@@ -1,15 +1,15 @@
 """Benchmark: this checkout's C++ CPU kernels against another git revision's, call by call.
 
-Builds ``src/meshseq/csrc/mesh_conv.cpp`` and ``fc.cpp`` as they are at ``--against REV`` into a
-second extension (their operators renamed to the ``meshseq_rev`` namespace, so both builds load
-into one process), then times the two builds' calls alternately on the horse's mesh (8431
+Builds the C++ kernels as they are at ``--against REV`` as a second extension (the revision's
+package copied as ``meshseq_rev`` by ``revision.py``, its operators in the ``meshseq_rev``
+namespace, so both builds load into one process), then times the two builds' calls alternately on the horse's mesh (8431
 vertices, 9 channels, 16 windows, the FC weight 128 x 75879) and prints, per operation, the 10th
 percentile and the median of each in milliseconds and whether the outputs have the same bits.
 
 Why this way: this machine's speed drifts by 20-50% from one minute to the next, so two
 separately measured runs cannot show a 5% lever; alternating A and B call by call in one
 process, and reading the 10th percentile (the median moves with the drift much more), can.
-Whole training iterations are compared the same way by ``train_speed.py``'s variants.
+Whole training iterations are compared the same way by ``iteration_ab.py``.
 
     python benchmarks/kernel_ab.py --against HEAD~3 [--threads 2] [--calls 150] [--windows 16]
 
@@ -21,8 +21,8 @@ and ``fc_wtx`` (W^T h).
 from __future__ import annotations
 
 import argparse
-import re
-import subprocess
+import importlib
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -33,28 +33,20 @@ import torch
 from meshseq import kernels
 from meshseq.mesh import Topology
 from meshseq.model import NeighborMean
+from revision import copy_revision
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "horse-gallop.npz"
-SOURCES = ("mesh_conv.cpp", "fc.cpp")
 
 
 def build_revision(rev: str, folder: Path) -> None:
-    """Compile the kernels of git revision ``rev`` as operators ``torch.ops.meshseq_rev.*``."""
-    from torch.utils.cpp_extension import load
-
-    paths = []
-    for name in SOURCES:
-        text = subprocess.run(["git", "show", f"{rev}:src/meshseq/csrc/{name}"], cwd=ROOT, check=True,
-                              capture_output=True, text=True).stdout
-        text = re.sub(r"TORCH_LIBRARY(_FRAGMENT)?\(meshseq,", r"TORCH_LIBRARY\1(meshseq_rev,", text)
-        path = folder / name
-        path.write_text(text)
-        paths.append(str(path))
-    if "TORCH_LIBRARY(meshseq_rev" not in (folder / SOURCES[0]).read_text():
-        raise SystemExit(f"--against {rev}: {SOURCES[0]} does not define the meshseq operator library")
-    load("meshseq_rev_kernels", paths, extra_cflags=["-O3", "-march=native", "-fopenmp"], extra_ldflags=["-fopenmp"],
-         build_directory=str(folder), is_python_module=False, verbose=False)
+    """Build the kernels of git revision ``rev`` as operators ``torch.ops.meshseq_rev.*``: its package
+    copied into ``folder`` (``revision.copy_revision``), its own ``cpu_kernels_available`` compiling
+    them."""
+    copy_revision(rev, folder)
+    sys.path.insert(0, str(folder))
+    if not importlib.import_module("meshseq_rev.kernels").cpu_kernels_available():
+        raise SystemExit(f"--against {rev}: its C++ kernels could not be built")
 
 
 def takes_input_tanh(ops) -> bool:
