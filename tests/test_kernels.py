@@ -196,6 +196,37 @@ def test_fc_products_have_the_same_bits_with_any_thread_count():
     assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])
 
 
+# every L the kernel has; N: whole register tiles of rows plus a remainder; pairs of unequal widths
+@pytest.mark.parametrize("L,N", [(16, 4103), (32, 301), (64, 1000), (128, 4102), (256, 97)])
+def test_fc_weight_gradient_matches_the_sum_of_products(L, N):
+    assert kernels.cpu_kernels_available()
+    torch.manual_seed(L + N)
+    widths = [16, 6, 16, 3]
+    rights = [torch.randn(N, b) for b in widths]
+    lefts = [torch.randn(b, L) for b in widths]
+    left = torch.cat(lefts)
+    assert kernels.fc_weight_gradient_supported(left, rights)  # the C++ path is what runs
+    g = kernels.fc_weight_gradient(left, rights)
+    ref = sum(lt.double().t() @ r.double().t() for lt, r in zip(lefts, rights))
+    assert g.shape == (L, N) and g.dtype == torch.float32
+    assert float((g.double() - ref).abs().max() / ref.abs().max()) <= 4e-6
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = kernels.fc_weight_gradient(left, rights)
+        torch.set_num_threads(3)
+        three = kernels.fc_weight_gradient(left, rights)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(one, g) and torch.equal(three, g)  # the same bits with any thread count
+
+
+def test_fc_weight_gradient_is_left_to_torch_for_other_latent_sizes_and_dtypes():
+    rights = [torch.randn(50, 8)]
+    assert not kernels.fc_weight_gradient_supported(torch.randn(8, 24), rights)  # L = 24: no kernel
+    assert not kernels.fc_weight_gradient_supported(torch.randn(8, 128, dtype=torch.bfloat16), rights)
+
+
 @pytest.mark.parametrize("steps", [False, True])
 @pytest.mark.parametrize("both", [True, False])
 @pytest.mark.parametrize("values", [9 * 7, 9 * 300])  # a partial chunk; more than one chunk

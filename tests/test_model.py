@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from meshseq import kernels
 from meshseq.data.synthetic import twisting_limb
 from meshseq.errors import MeshseqError
 from meshseq.mesh import Topology
@@ -278,13 +279,22 @@ def _reference_rollout(m, first, steps, state, n_forward):
 
 
 @pytest.mark.parametrize("windows", [3, 4])  # 6 chains: the FC products by torch; 8: by csrc/fc.cpp
-@pytest.mark.parametrize("bank_rows", [4096, 50])  # the FC weight gradient in one block, in several
+# the FC weight gradient by csrc/fc.cpp's kernel, or by torch in one block of rows, in several
+@pytest.mark.parametrize("bank_rows", [None, 4096, 50])
 def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch, windows, bank_rows):
     """Loss and every gradient of the fused roll-out equal the plain reference to 1e-5 relative."""
+    from meshseq import model as model_module
     from meshseq.model import _GradBank
     from meshseq.train import TrainConfig, WindowLoss
 
-    monkeypatch.setattr(_GradBank, "ROWS", bank_rows)
+    if bank_rows is None:
+        assert kernels.cpu_kernels_available(), "the C++ kernels did not build"
+        used = []
+        kernel = model_module.fc_weight_gradient
+        monkeypatch.setattr(model_module, "fc_weight_gradient", lambda *a: used.append(1) or kernel(*a))
+    else:
+        monkeypatch.setattr(model_module, "fc_weight_gradient_supported", lambda left, rights: False)
+        monkeypatch.setattr(_GradBank, "ROWS", bank_rows)
 
     m = make(limb, latent=16, layers=3)
     with torch.no_grad():
@@ -308,6 +318,8 @@ def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch, wi
     for n in ref:
         err = (fast[n] - ref[n]).norm() / ref[n].norm()
         assert err <= 1e-5, f"{n}: relative error {float(err):.2e}"
+    if bank_rows is None:
+        assert used, "the fast roll-out did not form the FC weight gradient with the C++ kernel"
 
 
 def _reference_rollout_fed_back_as_constants(m, first, steps, state, n_forward):

@@ -174,6 +174,26 @@ def fc_transposed_product(weight: torch.Tensor, h: torch.Tensor, bias: torch.Ten
     return torch.mm(weight.t(), h) if bias is None else torch.addmm(bias.to(weight.dtype)[:, None], weight.t(), h)
 
 
+def fc_weight_gradient_supported(left: torch.Tensor, rights: list[torch.Tensor]) -> bool:
+    """Whether ``fc_weight_gradient`` runs ``csrc/fc.cpp`` for these pairs (CPU, float32, L in 16,
+    32, 64, 128, 256); otherwise the caller forms the gradient with torch (``model._GradBank``)."""
+    return (left.dtype == torch.float32 and left.shape[1] in (16, 32, 64, 128, 256) and _use_cpu_kernels(left)
+            and all(r.dtype == torch.float32 and r.device == left.device for r in rights))
+
+
+def fc_weight_gradient(left: torch.Tensor, rights: list[torch.Tensor]) -> torch.Tensor:
+    """``sum_t left_t^T right_t^T`` ``(L, N)``: the big FC weight's gradient from a roll-out's pairs.
+
+    ``left`` ``(sum_t B_t, L)``: the pairs' left factors stacked in order; ``rights``: their ``(N,
+    B_t)`` right factors (frames, as the roll-out keeps them). ``csrc/fc.cpp`` sums every weight's
+    gradient in registers over all pairs, reading each right once where it lies: no concatenated
+    ``(N, sum_t B_t)`` copy (301 MB on the horse) and no transposing copy of an ``(N, L)`` product
+    into the weight's layout. The same bits with any thread count. CPU float32 only
+    (``fc_weight_gradient_supported``).
+    """
+    return torch.ops.meshseq.fc_weight_grad(left.contiguous(), [r.contiguous() for r in rights])
+
+
 class _FrameErrors(torch.autograd.Function):
     """``csrc/frame_errors.cpp`` with autograd; see ``frame_errors_of_frames``."""
 

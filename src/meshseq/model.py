@@ -54,7 +54,8 @@ import torch
 from torch import nn
 
 from meshseq.errors import MeshseqError
-from meshseq.kernels import MeshConvStack, fc_product, fc_product_and_row_sums, fc_transposed_product, stack_frames
+from meshseq.kernels import (MeshConvStack, fc_product, fc_product_and_row_sums, fc_transposed_product,
+                             fc_weight_gradient, fc_weight_gradient_supported, stack_frames)
 from meshseq.mesh import Topology
 
 VARIANTS = ("bd", "std-bd", "uni")
@@ -314,9 +315,10 @@ class _GradBank:
 
     ``encoder_scale`` multiplies the encoder's pairs (``BDLSTM.encoder_grad_scale``).
 
-    ``right`` is kept as the ``(N, B)`` frame it is (no transposing copy per step);
-    the sum is ``(R L)^T`` with ``R = [right_1 ... right_T]`` ``(N, T B)`` (one 64-byte-row copy,
-    into ``scratch``'s reused buffer)."""
+    ``right`` is kept as the ``(N, B)`` frame it is (no transposing copy per step). On CPU in
+    float32 the sum is ``kernels.fc_weight_gradient`` (reads the pairs where they lie); otherwise
+    ``(R L)^T`` with ``R = [right_1 ... right_T]`` ``(N, T B)`` (one 64-byte-row copy, into
+    ``scratch``'s reused buffer) by blocks of ``ROWS`` rows."""
 
     ROWS = 1024  # rows of R per block of the weight-gradient product (its 512 KB product fits in L2)
 
@@ -329,10 +331,20 @@ class _GradBank:
     def gradient(self) -> torch.Tensor | None:
         if not self.left:
             return None
+        left = torch.cat(self.left)  # (T B, L)
+        if fc_weight_gradient_supported(left, self.right):  # CPU float32: csrc/fc.cpp, no copies
+            g = fc_weight_gradient(left, self.right)
+        else:
+            g = self._blocked_product(left)
+        self.left.clear()
+        self.right.clear()
+        return g
+
+    def _blocked_product(self, left: torch.Tensor) -> torch.Tensor:
+        """``(R left)^T`` by torch (other devices and dtypes): ``R`` concatenated, then blocks of rows."""
         cols = sum(r.shape[1] for r in self.right)
         N = self.right[0].shape[0]
         R = torch.cat(self.right, 1, out=self.scratch.take((N, cols), self.right[0]))
-        left = torch.cat(self.left)  # (T B, L)
         # (R left)^T in the weight's own layout (L, N), a block of R's rows at a time: each block's
         # product is transposed while in cache; one whole product transposed after (autograd
         # keeps a gradient in its parameter's layout) cost a 39 MB strided copy (150 -> 132 ms);
@@ -341,8 +353,6 @@ class _GradBank:
         for a in range(0, N, self.ROWS):
             b = min(N, a + self.ROWS)
             g[:, a:b].copy_((R[a:b] @ left).t())
-        self.left.clear()
-        self.right.clear()
         return g
 
 

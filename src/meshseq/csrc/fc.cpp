@@ -146,7 +146,96 @@ int tile_width(int64_t B) {
   return B % 16 == 0 ? 16 : 8;
 }
 
+// ---- the banked weight gradient: g (L, N) = sum_t left_t^T right_t^T ----
+//
+// g[l, n] = sum_t sum_r left_t[r, l] right_t[n, r], over the roll-out's (left (B_t, L), right (N, B_t))
+// pairs: the FC's inputs or output gradients (N = V x 9 rows, B_t = 16 chains) and the matching
+// (B_t, L) gradients or LSTM outputs, 62 pairs an iteration on the horse. As one matmul this
+// needed the rights concatenated into one (N, sum B_t) matrix (301 MB written and read again)
+// and its (N, L) product transposed into the weight's layout block by block; here each thread
+// takes NR = 3 rows n at a time, reads their B_t values straight from every right (one cache
+// line each), broadcasts them against the left rows' 8 vectors of 16 l, and keeps the 3 x 8
+// sums in registers over all pairs; the sums are written to g's columns n (the weight's own
+// layout). Every g[l, n] is summed by one thread in a fixed order (pairs, then r): the same bits
+// with any number of threads.
+constexpr int GRAD_AHEAD = 4;  // tiles ahead whose right rows are prefetched
+
+// rows n, n + NR of g's columns; L = 16 LV
+template <int NR, int LV>
+inline void grad_tile(const float* const* rights, const int64_t* widths, int64_t T, const float* left,
+                      int64_t n, int64_t N, float* g) {
+  v16 acc[NR][LV];
+  for (int i = 0; i < NR; ++i)
+    for (int j = 0; j < LV; ++j) acc[i][j] = v16{};
+  const float* lrow = left;
+  for (int64_t t = 0; t < T; ++t) {
+    const int64_t B = widths[t];
+    const float* r = rights[t] + n * B;
+    if (n + (GRAD_AHEAD + 1) * NR <= N)  // the rows GRAD_AHEAD tiles ahead (a row of 16 values: one line)
+      for (int i = 0; i < NR; ++i) __builtin_prefetch(r + (GRAD_AHEAD * NR + i) * B, 0, 0);
+    for (int64_t b = 0; b < B; ++b, lrow += LV * 16) {
+      float s[NR];
+      for (int i = 0; i < NR; ++i) s[i] = r[i * B + b];
+      for (int j = 0; j < LV; ++j) {
+        v16 w = load<v16>(lrow + 16 * j);
+        __asm__("" : "+v"(w));  // one load into a register for the NR multiply-adds, not NR memory operands
+        for (int i = 0; i < NR; ++i) acc[i][j] += s[i] * w;
+      }
+    }
+  }
+  // through a buffer: reading the accumulators' lanes directly made the compiler keep them on the stack
+  float buf[NR][LV * 16];
+  for (int i = 0; i < NR; ++i)
+    for (int j = 0; j < LV; ++j) store(buf[i] + 16 * j, acc[i][j]);
+  for (int l = 0; l < LV * 16; ++l)
+    for (int i = 0; i < NR; ++i) g[l * N + n + i] = buf[i][l];
+}
+
+// NR x LV accumulators (at most 24 of the 32 vector registers) and the NR broadcasts
+template <int LV> constexpr int grad_rows() { return LV >= 16 ? 1 : LV == 8 ? 3 : LV == 4 ? 6 : 8; }
+
+template <int LV>
+void grad_tiles(const float* const* rights, const int64_t* widths, int64_t T, const float* left, int64_t N, float* g) {
+  constexpr int NR = grad_rows<LV>();
+  const int64_t tiles = N / NR;
+  at::parallel_for(0, tiles, 64, [&](int64_t k0, int64_t k1) {
+    for (int64_t k = k0; k < k1; ++k) grad_tile<NR, LV>(rights, widths, T, left, k * NR, N, g);
+  });
+  for (int64_t n = tiles * NR; n < N; ++n) grad_tile<1, LV>(rights, widths, T, left, n, N, g);
+}
+
+// whether fc_weight_grad has a kernel for L latent rows: L = 16, 32, 64, 128 or 256 (kernels.py checks the same)
+bool fc_weight_grad_supports(int64_t L) { return L == 16 || L == 32 || L == 64 || L == 128 || L == 256; }
+
 }  // namespace
+
+// left (sum B_t, L) (the pairs' lefts stacked in order), rights: T tensors (N, B_t) -> g (L, N)
+torch::Tensor fc_weight_grad(torch::Tensor left, std::vector<torch::Tensor> rights) {
+  TORCH_CHECK(!rights.empty(), "fc_weight_grad: no pairs");
+  const int64_t N = rights[0].size(0), L = left.size(1), T = int64_t(rights.size());
+  TORCH_CHECK(fc_weight_grad_supports(L), "fc_weight_grad: no kernel for L = ", L);
+  std::vector<const float*> ptrs(T);
+  std::vector<int64_t> widths(T);
+  int64_t rows = 0;
+  for (int64_t t = 0; t < T; ++t) {
+    check(rights[t], "right", N, rights[t].size(1));
+    ptrs[t] = rights[t].data_ptr<float>();
+    widths[t] = rights[t].size(1);
+    rows += widths[t];
+  }
+  check(left, "left", rows, L);
+  auto g = torch::empty({L, N}, left.options());
+  float* gp = g.data_ptr<float>();
+  const float* lp = left.data_ptr<float>();
+  switch (L / 16) {
+    case 1: grad_tiles<1>(ptrs.data(), widths.data(), T, lp, N, gp); break;
+    case 2: grad_tiles<2>(ptrs.data(), widths.data(), T, lp, N, gp); break;
+    case 4: grad_tiles<4>(ptrs.data(), widths.data(), T, lp, N, gp); break;
+    case 8: grad_tiles<8>(ptrs.data(), widths.data(), T, lp, N, gp); break;
+    default: grad_tiles<16>(ptrs.data(), widths.data(), T, lp, N, gp); break;
+  }
+  return g;
+}
 
 namespace {
 
@@ -211,4 +300,5 @@ TORCH_LIBRARY_FRAGMENT(meshseq, m) {
   m.def("fc_wx", &fc_wx);
   m.def("fc_wx_row_sums", &fc_wx_row_sums);
   m.def("fc_wtx", &fc_wtx);
+  m.def("fc_weight_grad", &fc_weight_grad);
 }
