@@ -175,9 +175,10 @@ def fc_transposed_product(weight: torch.Tensor, h: torch.Tensor, bias: torch.Ten
 
 
 def fc_weight_gradient_supported(left: torch.Tensor, rights: list[torch.Tensor]) -> bool:
-    """Whether ``fc_weight_gradient`` runs ``csrc/fc.cpp`` for these pairs (CPU, float32, L in 16,
-    32, 64, 128, 256); otherwise the caller forms the gradient with torch (``model._GradBank``)."""
-    return (left.dtype == torch.float32 and left.shape[1] in (16, 32, 64, 128, 256) and _use_cpu_kernels(left)
+    """Whether ``fc_weight_gradient`` runs ``csrc/fc.cpp`` for these pairs (CPU with AVX-512, float32, L
+    in 16, 32, 64, 128, 256); otherwise the caller forms the gradient with torch (``model._GradBank``)."""
+    return (left.dtype == torch.float32 and _use_cpu_kernels(left)
+            and torch.ops.meshseq.fc_weight_grad_supports(left.shape[1])
             and all(r.dtype == torch.float32 and r.device == left.device for r in rights))
 
 

@@ -178,7 +178,9 @@ inline void grad_tile(const float* const* rights, const int64_t* widths, int64_t
       for (int i = 0; i < NR; ++i) s[i] = r[i * B + b];
       for (int j = 0; j < LV; ++j) {
         v16 w = load<v16>(lrow + 16 * j);
+#if defined(__AVX512F__)
         __asm__("" : "+v"(w));  // one load into a register for the NR multiply-adds, not NR memory operands
+#endif
         for (int i = 0; i < NR; ++i) acc[i][j] += s[i] * w;
       }
     }
@@ -204,8 +206,15 @@ void grad_tiles(const float* const* rights, const int64_t* widths, int64_t T, co
   for (int64_t n = tiles * NR; n < N; ++n) grad_tile<1, LV>(rights, widths, T, left, n, N, g);
 }
 
-// whether fc_weight_grad has a kernel for L latent rows: L = 16, 32, 64, 128 or 256 (kernels.py checks the same)
-bool fc_weight_grad_supports(int64_t L) { return L == 16 || L == 32 || L == 64 || L == 128 || L == 256; }
+// whether fc_weight_grad has a kernel for L latent rows: L = 16, 32, 64, 128 or 256, with AVX-512 (its 32
+// vector registers hold the NR x LV sums; with AVX2's 16 they would spill, and BLAS does better)
+bool fc_weight_grad_supports(int64_t L) {
+#if defined(__AVX512F__)
+  return L == 16 || L == 32 || L == 64 || L == 128 || L == 256;
+#else
+  return false;
+#endif
+}
 
 }  // namespace
 
@@ -301,4 +310,5 @@ TORCH_LIBRARY_FRAGMENT(meshseq, m) {
   m.def("fc_wx_row_sums", &fc_wx_row_sums);
   m.def("fc_wtx", &fc_wtx);
   m.def("fc_weight_grad", &fc_weight_grad);
+  m.def("fc_weight_grad_supports", &fc_weight_grad_supports);
 }
