@@ -227,6 +227,54 @@ def test_fc_weight_gradient_is_left_to_torch_for_other_latent_sizes_and_dtypes()
     assert not kernels.fc_weight_gradient_supported(torch.randn(8, 128, dtype=torch.bfloat16), rights)
 
 
+# the roll-out's size; a batch that is not a whole register tile of rows, a width that is not a
+# whole tile of columns (48 = 3 vectors of 16), one layer
+@pytest.mark.parametrize("H,B,K", [(128, 16, 3), (16, 6, 2), (48, 5, 1)])
+def test_lstm_step_kernel_matches_torch_lstm_cell(H, B, K):
+    from torch import nn
+
+    from meshseq.model import lstm_step
+
+    assert kernels.cpu_kernels_available()
+    torch.manual_seed(H + B + K)
+    lstm = nn.LSTM(H, H, K)
+    z, h, c = torch.randn(B, H), torch.randn(K, B, H), torch.randn(K, B, H)
+    grads_out = (torch.randn(B, H), torch.randn(K, B, H), torch.randn(K, B, H))
+    assert kernels.lstm_step_supported(lstm, z)  # the C++ path is what runs
+
+    def run(transposed):
+        inputs = [t.clone().requires_grad_() for t in (z, h, c)]
+        out, (h2, c2) = lstm_step(lstm, *inputs, transposed=transposed)
+        grads = torch.autograd.grad([out, h2, c2], [*inputs, *lstm.parameters()], grads_out)
+        return [out, h2, c2, *grads]
+
+    ref, fast = run(None), run(kernels.lstm_transposed(lstm))
+    for a, b in zip(fast, ref):  # outputs, input and state gradients, every weight's and bias's gradient
+        assert a.shape == b.shape
+        assert float((a - b).norm() / b.norm()) <= 2e-6
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = run(kernels.lstm_transposed(lstm))
+        torch.set_num_threads(3)
+        three = run(kernels.lstm_transposed(lstm))
+    finally:
+        torch.set_num_threads(before)
+    assert all(torch.equal(a, b) and torch.equal(a, f) for a, b, f in zip(one, three, fast))  # same bits
+
+
+def test_lstm_step_is_left_to_torch_for_other_widths_dtypes_and_autocast():
+    from torch import nn
+
+    lstm = nn.LSTM(24, 24, 1)  # not a multiple of 16
+    assert not kernels.lstm_step_supported(lstm, torch.randn(3, 24))
+    lstm = nn.LSTM(16, 16, 1)
+    assert kernels.lstm_step_supported(lstm, torch.randn(3, 16))
+    assert not kernels.lstm_step_supported(lstm.double(), torch.randn(3, 16, dtype=torch.float64))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert not kernels.lstm_step_supported(lstm.float(), torch.randn(3, 16))
+
+
 @pytest.mark.parametrize("steps", [False, True])
 @pytest.mark.parametrize("both", [True, False])
 @pytest.mark.parametrize("values", [9 * 7, 9 * 300])  # a partial chunk; more than one chunk

@@ -287,11 +287,12 @@ def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch, wi
     from meshseq.model import _GradBank
     from meshseq.train import TrainConfig, WindowLoss
 
-    if bank_rows is None:
+    if bank_rows is None:  # and the LSTM steps by csrc/lstm.cpp
         assert kernels.cpu_kernels_available(), "the C++ kernels did not build"
         used = []
-        kernel = model_module.fc_weight_gradient
-        monkeypatch.setattr(model_module, "fc_weight_gradient", lambda *a: used.append(1) or kernel(*a))
+        kernel, lstm_kernel = model_module.fc_weight_gradient, model_module.LSTMStep.apply
+        monkeypatch.setattr(model_module, "fc_weight_gradient", lambda *a: used.append("fc") or kernel(*a))
+        monkeypatch.setattr(model_module.LSTMStep, "apply", lambda *a: used.append("lstm") or lstm_kernel(*a))
     else:
         monkeypatch.setattr(model_module, "fc_weight_gradient_supported", lambda left, rights: False)
         monkeypatch.setattr(_GradBank, "ROWS", bank_rows)
@@ -319,7 +320,8 @@ def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch, wi
         err = (fast[n] - ref[n]).norm() / ref[n].norm()
         assert err <= 1e-5, f"{n}: relative error {float(err):.2e}"
     if bank_rows is None:
-        assert used, "the fast roll-out did not form the FC weight gradient with the C++ kernel"
+        assert "fc" in used, "the fast roll-out did not form the FC weight gradient with the C++ kernel"
+        assert "lstm" in used, "the fast roll-out did not run its LSTM steps with the C++ kernel"
 
 
 def _reference_rollout_fed_back_as_constants(m, first, steps, state, n_forward):

@@ -52,7 +52,9 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-_SOURCES = [Path(__file__).resolve().parent / "csrc" / name for name in ("mesh_conv.cpp", "fc.cpp", "frame_errors.cpp")]
+_CSRC = Path(__file__).resolve().parent / "csrc"
+_SOURCES = [_CSRC / name for name in ("mesh_conv.cpp", "fc.cpp", "frame_errors.cpp", "lstm.cpp")]
+_HEADERS = [_CSRC / "simd.h"]  # included by the sources; torch's build cache hashes only sources and flags
 _lock = threading.Lock()
 _cpu_kernels: bool | None = None  # None: not tried yet
 
@@ -78,9 +80,14 @@ def cpu_kernels_available() -> bool:
             build = Path(get_default_build_root()) / f"meshseq_kernels-{py}-torch{torch.__version__}-{cpu_signature()}"
             build.mkdir(parents=True, exist_ok=True)
             clear_stale_lock(build)
-            load("meshseq_kernels", [str(p) for p in _SOURCES], extra_cflags=["-O3", "-march=native", "-fopenmp"],
+            import hashlib
+
+            headers = hashlib.sha1(b"".join(p.read_bytes() for p in _HEADERS)).hexdigest()[:12]
+            flags = ["-O3", "-march=native", "-fopenmp", f"-DMESHSEQ_HEADERS={headers}"]  # a header change rebuilds
+            load("meshseq_kernels", [str(p) for p in _SOURCES], extra_cflags=flags,
                  extra_ldflags=["-fopenmp"], build_directory=str(build), is_python_module=False, verbose=False)
-            _cpu_kernels = all(hasattr(torch.ops.meshseq, op) for op in ("conv_forward", "fc_wx", "fc_wtx", "frame_errors"))
+            _cpu_kernels = all(hasattr(torch.ops.meshseq, op) for op in ("conv_forward", "fc_wx", "fc_wtx", "frame_errors",
+                                                                        "lstm_forward"))
         except Exception as e:  # no compiler, no ninja, a compile error: fall back, say why
             reason = " ".join(str(e).split())[:300]
             warnings.warn(f"meshseq: the C++ CPU kernels could not be built ({type(e).__name__}: {reason}); "
@@ -193,6 +200,51 @@ def fc_weight_gradient(left: torch.Tensor, rights: list[torch.Tensor]) -> torch.
     (``fc_weight_gradient_supported``).
     """
     return torch.ops.meshseq.fc_weight_grad(left.contiguous(), [r.contiguous() for r in rights])
+
+
+def lstm_step_supported(lstm, z: torch.Tensor) -> bool:
+    """Whether ``lstm_step`` runs ``csrc/lstm.cpp`` for this ``nn.LSTM`` and input: CPU, float32, no
+    autocast, biases, no projection, input and hidden widths multiples of 16."""
+    return (z.dtype == torch.float32 and not torch.is_autocast_enabled(z.device.type) and lstm.bias
+            and not lstm.proj_size and z.shape[-1] % 16 == 0 and lstm.hidden_size % 16 == 0
+            and all(p.dtype == torch.float32 and p.device == z.device for p in lstm.parameters())
+            and _use_cpu_kernels(z))
+
+
+def lstm_transposed(lstm) -> tuple[list, list, list]:
+    """What ``csrc/lstm.cpp``'s forward reads, made once per roll-out (no gradient: the step's
+    backward returns the gradients of the weights themselves): per layer ``W_ih^T``, ``W_hh^T`` and
+    ``b_ih + b_hh``."""
+    with torch.no_grad():
+        layers = range(lstm.num_layers)
+        return ([getattr(lstm, f"weight_ih_l{k}").t().contiguous() for k in layers],
+                [getattr(lstm, f"weight_hh_l{k}").t().contiguous() for k in layers],
+                [getattr(lstm, f"bias_ih_l{k}") + getattr(lstm, f"bias_hh_l{k}") for k in layers])
+
+
+class LSTMStep(torch.autograd.Function):
+    """One step of a stacked ``nn.LSTM``, all layers, as one autograd node (``csrc/lstm.cpp``):
+    ``z`` ``(B, I)``, ``h``, ``c`` ``(K, B, H)`` -> ``(h', c')``; ``transposed``: ``lstm_transposed``;
+    ``params``: per layer ``w_ih, w_hh, b_ih, b_hh``."""
+
+    @staticmethod
+    def forward(ctx, z, h, c, transposed, *params):
+        z, h, c = z.contiguous(), h.contiguous(), c.contiguous()
+        h_out, c_out, gates = torch.ops.meshseq.lstm_forward(z, h, c, *transposed)
+        ctx.save_for_backward(z, h, c, h_out, c_out, gates, *params[0::4], *params[1::4])
+        return h_out, c_out
+
+    @staticmethod
+    def backward(ctx, dh_out, dc_out):
+        z, h, c, h_out, c_out, gates, *weights = ctx.saved_tensors
+        K = len(weights) // 2
+        res = torch.ops.meshseq.lstm_backward(dh_out.contiguous(), dc_out.contiguous(), z, h, c, h_out, c_out,
+                                              gates, weights[:K], weights[K:])
+        grads = []
+        for k in range(K):
+            dwi, dwh, db = res[3 + 3 * k: 6 + 3 * k]
+            grads += [dwi, dwh, db, db.clone()]  # b_ih and b_hh: the same gradient, one tensor each
+        return (res[0], res[1], res[2], None, *grads)
 
 
 class _FrameErrors(torch.autograd.Function):

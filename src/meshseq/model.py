@@ -54,8 +54,9 @@ import torch
 from torch import nn
 
 from meshseq.errors import MeshseqError
-from meshseq.kernels import (MeshConvStack, fc_product, fc_product_and_row_sums, fc_transposed_product,
-                             fc_weight_gradient, fc_weight_gradient_supported, stack_frames)
+from meshseq.kernels import (LSTMStep, MeshConvStack, fc_product, fc_product_and_row_sums, fc_transposed_product,
+                             fc_weight_gradient, fc_weight_gradient_supported, lstm_step_supported,
+                             lstm_transposed, stack_frames)
 from meshseq.mesh import Topology
 
 VARIANTS = ("bd", "std-bd", "uni")
@@ -356,13 +357,22 @@ class _GradBank:
         return g
 
 
-def lstm_step(lstm: nn.LSTM, z: torch.Tensor, h: torch.Tensor, c: torch.Tensor):
+def lstm_step(lstm: nn.LSTM, z: torch.Tensor, h: torch.Tensor, c: torch.Tensor, transposed=None):
     """One time step of a stacked ``nn.LSTM`` (unidirectional, no projection or dropout):
     ``z`` ``(B, L_in)``, ``h``, ``c`` ``(K, B, L)`` -> ``(out (B, L), (h', c'))``, the module's
     arithmetic, as ``torch.lstm_cell`` layer by layer. (The module's one-step call went through
     oneDNN's sequence kernel: 59 against 40 ms for the 31 steps of a roll-out, forward and
     backward, 16 chains of 128, 2 threads; the results agree to float32 rounding.)
+
+    ``transposed``: ``kernels.lstm_transposed(lstm)`` (the roll-out's fast path makes it once):
+    then, where ``kernels.lstm_step_supported``, all layers run as one ``kernels.LSTMStep``
+    (``csrc/lstm.cpp``; 68 -> NN ms for a roll-out's 31 steps forward + backward).
     """
+    if transposed is not None and lstm_step_supported(lstm, z):
+        params = [getattr(lstm, f"{n}_l{k}") for k in range(lstm.num_layers)
+                  for n in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")]
+        h_out, c_out = LSTMStep.apply(z, h, c, transposed, *params)
+        return h_out[-1], (h_out, c_out)
     hs, cs = [], []
     x = z
     for k in range(lstm.num_layers):
@@ -478,6 +488,7 @@ class _FC:
                 for k in range(K)
             ]
             self.ring = model.ring
+        self._lstm_transposed: dict[int, tuple] = {}  # id(nn.LSTM) -> kernels.lstm_transposed, once per roll-out
         scale = float(model.encoder_grad_scale)
         self.bank = _GradBank(scale, model._scratch) if deferred else None
         self.enc_weight = None  # the weight the encoder reads, when its gradient is scaled (not deferred)
@@ -494,6 +505,15 @@ class _FC:
                 self.enc_weight = _ScaleGradient.apply(self.weight, scale)
         self.bias = model.fc.bias
         self.dec_bias = model.dec_fc_bias
+
+    def lstm_weights(self, lstm: nn.LSTM):
+        """``kernels.lstm_transposed(lstm)`` for the fast path's LSTM steps (made on first use); None
+        off the fast path (the steps then run ``torch.lstm_cell``)."""
+        if not self.fused:
+            return None
+        if id(lstm) not in self._lstm_transposed:
+            self._lstm_transposed[id(lstm)] = lstm_transposed(lstm)
+        return self._lstm_transposed[id(lstm)]
 
     def encode(self, x):  # (V*C, B) -> (B, L)
         if self.bank is None:
@@ -642,7 +662,7 @@ class BDLSTM(nn.Module):
     def _step_vm(self, state, x, fc: _FC, sample: bool, n_forward, feedback_grad: bool = True):
         mu, logvar = self._encode_vm(x if feedback_grad else x.detach(), fc)
         z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
-        h, state = self._lstm(z, state, n_forward)
+        h, state = self._lstm(z, state, n_forward, fc)
         if self.config.step_scale is not None:
             return state, x + self._decode_vm(h, fc) * self.step_scale, mu, logvar
         return state, self._decode_vm(h, fc, residual=x), mu, logvar
@@ -664,17 +684,22 @@ class BDLSTM(nn.Module):
         s = (v * sign).view(1, -1, 1).expand(K, -1, L).contiguous()
         return s, s.clone()
 
-    def _lstm(self, z: torch.Tensor, state, n_forward: int | None):
-        """One LSTM step for ``z`` ``(B, L)``; rows ``n_forward:`` use the backward LSTM (std-bd)."""
+    def _lstm(self, z: torch.Tensor, state, n_forward: int | None, fc: _FC | None = None):
+        """One LSTM step for ``z`` ``(B, L)``; rows ``n_forward:`` use the backward LSTM (std-bd).
+        ``fc``: the roll-out's ``_FC`` (its fast path's LSTM weights), or None."""
         h, c = state
+
+        def step(lstm, *args):
+            return lstm_step(lstm, *args, transposed=None if fc is None else fc.lstm_weights(lstm))
+
         if self.lstm_backward is None or n_forward is None or n_forward >= z.shape[0]:
-            return lstm_step(self.lstm, z, h, c)
+            return step(self.lstm, z, h, c)
         if n_forward <= 0:
-            return lstm_step(self.lstm_backward, z, h, c)
+            return step(self.lstm_backward, z, h, c)
         f = slice(0, n_forward)
         b = slice(n_forward, None)
-        of, (hf, cf) = lstm_step(self.lstm, z[f], h[:, f], c[:, f])
-        ob, (hb, cb) = lstm_step(self.lstm_backward, z[b], h[:, b], c[:, b])
+        of, (hf, cf) = step(self.lstm, z[f], h[:, f], c[:, f])
+        ob, (hb, cb) = step(self.lstm_backward, z[b], h[:, b], c[:, b])
         return torch.cat([of, ob]), (torch.cat([hf, hb], 1), torch.cat([cf, cb], 1))
 
     def step(self, state, x: torch.Tensor, sample: bool = False, n_forward: int | None = None):

@@ -34,50 +34,12 @@
 #include <optional>
 #include <vector>
 
+#include "simd.h"
+
 namespace {
 
-typedef float v16 __attribute__((vector_size(64)));
-typedef float v8 __attribute__((vector_size(32)));
 constexpr int CMAX = 16;    // most channels a layer may have
 constexpr int NCHUNK = 64;  // vertex chunks of the weight-gradient sums
-
-// s in every lane: one broadcast. (`T{} + s`, as this was, compiled to an add and a broadcast:
-// 0 + s cannot be folded to s, because of s = -0; in the FC products that tripled the instructions
-// per multiply-add. s - 0 is s for every s; a lane-by-lane loop compiled to 16 masked broadcasts.)
-template <typename T> inline T splat(float s) { return s - T{}; }
-// unaligned vectors of floats: loads and stores typed as float data (a memcpy store may alias
-// anything, so the compiler reloaded every captured pointer and flag after each store)
-typedef float v16u __attribute__((vector_size(64), aligned(4)));
-typedef float v8u __attribute__((vector_size(32), aligned(4)));
-template <typename T> struct unaligned;
-template <> struct unaligned<v16> { typedef v16u type; };
-template <> struct unaligned<v8> { typedef v8u type; };
-template <typename T> inline T load(const float* p) { return *reinterpret_cast<const typename unaligned<T>::type*>(p); }
-template <typename T> inline void store(float* p, T v) { *reinterpret_cast<typename unaligned<T>::type*>(p) = v; }
-template <typename T> inline float lanes_sum(T v) {
-  float s = 0.f;
-  for (int l = 0; l < int(sizeof(T) / sizeof(float)); ++l) s += v[l];
-  return s;
-}
-
-template <typename T> inline T tanh_rational(T x) {
-  const T c = splat<T>(7.90531110763549805f);
-  x = x < -c ? -c : (x > c ? c : x);
-  const T x2 = x * x;
-  T p = splat<T>(-2.76076847742355e-16f);
-  p = p * x2 + 2.00018790482477e-13f;
-  p = p * x2 + -8.60467152213735e-11f;
-  p = p * x2 + 5.12229709037114e-08f;
-  p = p * x2 + 1.48572235717979e-05f;
-  p = p * x2 + 6.37261928875436e-04f;
-  p = p * x2 + 4.89352455891786e-03f;
-  p = p * x;
-  T q = splat<T>(1.19825839466702e-06f);
-  q = q * x2 + 1.18534705686654e-04f;
-  q = q * x2 + 2.26843463243900e-03f;
-  q = q * x2 + 4.89352518554385e-03f;
-  return p / q;
-}
 
 struct Csr {
   const int64_t* rowptr;
