@@ -32,7 +32,12 @@ The big FC's per-step products (``fc_product``: ``W x``, ``fc_transposed_product
 ``W`` ``(L, V*C)``, 39 MB on the horse, against 16 columns) run in ``csrc/fc.cpp`` on CPU in
 float32: each product is one stream over ``W``, each weight broadcast against a SIMD vector of
 the columns (2.0 ms a product on the horse, 2 threads: about the time to read ``W`` from memory);
-BLAS ran these skinny shapes at a third to a half of that rate (see that file).
+BLAS ran these skinny shapes at a third to a half of that rate (see that file). Its weight
+gradient over a roll-out (``fc_weight_gradient``) sums each weight's terms in registers, reading
+the roll-out's frames where they lie (with AVX-512).
+
+The LSTM steps (``LSTMStep``, ``csrc/lstm.cpp``): all layers of a step as one autograd node, the
+small products register-tiled (BLAS repacked the weights at every call), the gates in one pass.
 
 The window losses' per-frame squared errors (``frame_errors_of_frames``: L_rec of both chains,
 L_bd and L_motion's step sizes) run in ``csrc/frame_errors.cpp`` on CPU in float32, read from the
