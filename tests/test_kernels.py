@@ -246,7 +246,7 @@ def test_lstm_step_kernel_matches_torch_lstm_cell(H, B, K):
         inputs = [t.clone().requires_grad_() for t in (z, h, c)]
         out, (h2, c2) = lstm_step(lstm, *inputs, transposed=transposed)
         grads = torch.autograd.grad([out, h2, c2], [*inputs, *lstm.parameters()], grads_out)
-        return [out, h2, c2, *grads]
+        return [t.detach() for t in (out, h2, c2, *grads)]
 
     ref, fast = run(None), run(kernels.lstm_transposed(lstm))
     for a, b in zip(fast, ref):  # outputs, input and state gradients, every weight's and bias's gradient
