@@ -42,6 +42,8 @@
 #endif
 #include <vector>
 
+#include "simd.h"
+
 namespace {
 
 constexpr int64_t K = 256;  // values of each frame per chunk
@@ -135,21 +137,19 @@ void chunk_errors(const FrameSet& fs, const float* tb, int64_t b0, int64_t k0, i
   }
 }
 
-// G lanes as one value: 8 as a SIMD vector (unaligned loads; streaming stores, see below), 1 as a float
-typedef float v8 __attribute__((vector_size(32)));
-typedef float v8u __attribute__((vector_size(32), aligned(4)));
+// G lanes as one value: 8 as a SIMD vector (simd.h's unaligned loads; streaming stores, see below), 1 as a float
 template <int G> struct Lanes;
 template <> struct Lanes<8> {
   typedef v8 T;
-  static T load(const float* p) { return *reinterpret_cast<const v8u*>(p); }
-  static T splat(float s) { return s - T{}; }
+  static T load(const float* p) { return ::load<v8>(p); }
+  static T splat(float s) { return ::splat<v8>(s); }
   // The gradients (310 MB on the horse) are read only when the roll-out's backward reaches their
   // frame, long after: written past the cache when aligned (no read of the lines first)
   static void store(float* p, T v) {
 #ifdef __AVX__
     if ((reinterpret_cast<uintptr_t>(p) & 31) == 0) return _mm256_stream_ps(p, reinterpret_cast<__m256>(v));
 #endif
-    *reinterpret_cast<v8u*>(p) = v;
+    ::store(p, v);
   }
 };
 template <> struct Lanes<1> {

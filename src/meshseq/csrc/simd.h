@@ -1,4 +1,4 @@
-// Small SIMD helpers shared by the CPU kernels (mesh_conv.cpp, lstm.cpp): GCC/Clang vector types
+// Small SIMD helpers shared by the CPU kernels (mesh_conv.cpp, lstm.cpp, frame_errors.cpp): GCC/Clang vector types
 // of 16 and 8 floats (AVX-512 / AVX2 registers with -march=native), a broadcast, unaligned loads
 // and stores, a lane sum and a vectorised tanh. (kernels.py hashes this file into the build flags,
 // so changing it rebuilds the kernels.)
