@@ -73,66 +73,55 @@ FrameSet frame_set(const std::vector<torch::Tensor>& frames, const torch::Tensor
   return fs;
 }
 
+#ifdef __AVX__
+// r[q] (8 floats each) -> their transpose, in place: r[q][l] becomes r[l][q]
+inline void transpose8(__m256 r[8]) {
+  __m256 t[8], u[8];
+  for (int q = 0; q < 8; q += 2) {
+    t[q] = _mm256_unpacklo_ps(r[q], r[q + 1]);
+    t[q + 1] = _mm256_unpackhi_ps(r[q], r[q + 1]);
+  }
+  for (int q = 0; q < 8; q += 4) {
+    u[q] = _mm256_shuffle_ps(t[q], t[q + 2], _MM_SHUFFLE(1, 0, 1, 0));
+    u[q + 1] = _mm256_shuffle_ps(t[q], t[q + 2], _MM_SHUFFLE(3, 2, 3, 2));
+    u[q + 2] = _mm256_shuffle_ps(t[q + 1], t[q + 3], _MM_SHUFFLE(1, 0, 1, 0));
+    u[q + 3] = _mm256_shuffle_ps(t[q + 1], t[q + 3], _MM_SHUFFLE(3, 2, 3, 2));
+  }
+  for (int q = 0; q < 4; ++q) {
+    r[q] = _mm256_permute2f128_ps(u[q], u[q + 4], 0x20);
+    r[q + 4] = _mm256_permute2f128_ps(u[q], u[q + 4], 0x31);
+  }
+}
+#endif
+
 // The truth of values [k0, k0 + kn) of every frame, lanes = windows: tb[(i K + k) B + b]
+// (8 windows by 8 values at a time as an 8 x 8 transpose in registers where AVX is there: one
+// float at a time, this copy was a fifth of the forward's time)
 void truth_lanes(const float* w, const FrameSet& fs, int64_t k0, int64_t kn, float* tb) {
   const int64_t n = fs.n, B = fs.B;
-  for (int64_t i = 0; i < n; ++i)
-    for (int64_t b = 0; b < B; ++b) {
+  for (int64_t i = 0; i < n; ++i) {
+    int64_t b = 0;
+#ifdef __AVX__
+    for (; b + 8 <= B; b += 8) {
+      int64_t k = 0;
+      for (; k + 8 <= kn; k += 8) {
+        __m256 r[8];
+        for (int q = 0; q < 8; ++q) {
+          const float* src = w + ((b + q) * n + i) * fs.D + k0 + k;
+          r[q] = _mm256_loadu_ps(src);
+          if ((k & 15) == 0) __builtin_prefetch(src + K);  // the next chunk's line (a thread's next chunk)
+        }
+        transpose8(r);
+        for (int q = 0; q < 8; ++q) _mm256_storeu_ps(tb + (i * K + k + q) * B + b, r[q]);
+      }
+      for (; k < kn; ++k)
+        for (int q = 0; q < 8; ++q) tb[(i * K + k) * B + b + q] = w[((b + q) * n + i) * fs.D + k0 + k];
+    }
+#endif
+    for (; b < B; ++b) {
       const float* src = w + (b * n + i) * fs.D + k0;
       float* dst = tb + i * K * B + b;
       for (int64_t k = 0; k < kn; ++k) dst[k * B] = src[k];
-    }
-}
-
-// Error sums of lanes [b0, b0 + G) over one chunk: part[(i ROWS + row) B + b]
-template <int G, bool BOTH, bool STEPS>
-void chunk_errors(const FrameSet& fs, const float* tb, int64_t b0, int64_t k0, int64_t kn, float* part) {
-  const int64_t n = fs.n, R = fs.R, B = fs.B;
-  for (int64_t i = 0; i < n; ++i) {
-    const int64_t j = n - 1 - i, ip = i > 0 ? i - 1 : 0;
-    const float* fi = fs.frame[i] + k0 * R;
-    const float* fj = fs.frame[j] + k0 * R;
-    const float* fp = fs.frame[ip] + k0 * R;
-    const float *xi = tb + i * K * B, *xj = tb + j * K * B, *xp = tb + ip * K * B;
-    float s0[G] = {}, s1[G] = {}, s2[G] = {}, s3[G] = {}, s4[G] = {}, s5[G] = {};
-    for (int64_t k = 0; k < kn; ++k) {
-      const float *f = fi + k * R + b0, *x = xi + k * B + b0;
-      for (int l = 0; l < G; ++l) {
-        const float d = f[l] - x[l];
-        s0[l] += d * d;
-      }
-      if (BOTH) {
-        const float *g = f + B, *gj = fj + k * R + B + b0, *y = xj + k * B + b0;
-        for (int l = 0; l < G; ++l) {
-          const float d1 = g[l] - y[l], d2 = f[l] - gj[l];
-          s1[l] += d1 * d1;
-          s2[l] += d2 * d2;
-        }
-      }
-      if (STEPS) {
-        const float *f0 = fp + k * R + b0, *x0 = xp + k * B + b0;
-        for (int l = 0; l < G; ++l) {
-          const float d3 = f[l] - f0[l], d5 = x[l] - x0[l];
-          s3[l] += d3 * d3;
-          s5[l] += d5 * d5;
-        }
-        if (BOTH) {
-          const float *g = f + B, *g0 = f0 + B;
-          for (int l = 0; l < G; ++l) {
-            const float d4 = g[l] - g0[l];
-            s4[l] += d4 * d4;
-          }
-        }
-      }
-    }
-    float* out = part + i * ROWS * B + b0;
-    for (int l = 0; l < G; ++l) {
-      out[0 * B + l] = s0[l];
-      out[1 * B + l] = s1[l];
-      out[2 * B + l] = s2[l];
-      out[3 * B + l] = s3[l];  // frame 0 against itself: 0
-      out[4 * B + l] = s4[l];
-      out[5 * B + l] = s5[l];
     }
   }
 }
@@ -151,13 +140,62 @@ template <> struct Lanes<8> {
 #endif
     ::store(p, v);
   }
+  static void put(float* p, T v) { ::store(p, v); }
 };
 template <> struct Lanes<1> {
   typedef float T;
   static T load(const float* p) { return *p; }
   static T splat(float s) { return s; }
   static void store(float* p, T v) { *p = v; }
+  static void put(float* p, T v) { *p = v; }
 };
+
+// Error sums of lanes [b0, b0 + G) over one chunk: part[(i ROWS + row) B + b]. Each lane sums
+// its own values in order, so a group of 8 as one vector (explicit: the compiler had left the
+// lane loops scalar, with the sums on the stack) gives every lane the same bits as one at a time.
+template <int G, bool BOTH, bool STEPS>
+void chunk_errors(const FrameSet& fs, const float* tb, int64_t b0, int64_t k0, int64_t kn, float* part) {
+  typedef Lanes<G> L;
+  typedef typename L::T T;
+  const int64_t n = fs.n, R = fs.R, B = fs.B;
+  for (int64_t i = 0; i < n; ++i) {
+    const int64_t j = n - 1 - i, ip = i > 0 ? i - 1 : 0;
+    const float* fi = fs.frame[i] + k0 * R;
+    const float* fj = fs.frame[j] + k0 * R;
+    const float* fp = fs.frame[ip] + k0 * R;
+    const float *xi = tb + i * K * B, *xj = tb + j * K * B, *xp = tb + ip * K * B;
+    T s0{}, s1{}, s2{}, s3{}, s4{}, s5{};
+    for (int64_t k = 0; k < kn; ++k) {
+      const float *f = fi + k * R + b0, *x = xi + k * B + b0;
+      const T fv = L::load(f), xv = L::load(x);
+      const T d0 = fv - xv;
+      s0 += d0 * d0;
+      if (BOTH) {
+        const T gv = L::load(f + B);
+        const T d1 = gv - L::load(xj + k * B + b0), d2 = fv - L::load(fj + k * R + B + b0);
+        s1 += d1 * d1;
+        s2 += d2 * d2;
+      }
+      if (STEPS) {
+        const float* f0 = fp + k * R + b0;
+        const T d3 = fv - L::load(f0), d5 = xv - L::load(xp + k * B + b0);
+        s3 += d3 * d3;
+        s5 += d5 * d5;
+        if (BOTH) {
+          const T d4 = L::load(f + B) - L::load(f0 + B);
+          s4 += d4 * d4;
+        }
+      }
+    }
+    float* out = part + i * ROWS * B + b0;
+    L::put(out + 0 * B, s0);
+    L::put(out + 1 * B, s1);
+    L::put(out + 2 * B, s2);
+    L::put(out + 3 * B, s3);  // frame 0 against itself: 0
+    L::put(out + 4 * B, s4);
+    L::put(out + 5 * B, s5);
+  }
+}
 
 // Frame i's gradient, lanes [b0, b0 + G) (and B + b0 ...), values [k0, k0 + kn): into out (D, R)
 template <int G, bool BOTH, bool STEPS>
@@ -261,13 +299,13 @@ torch::Tensor frame_errors(std::vector<torch::Tensor> frames, torch::Tensor wind
   const int rows = steps ? 6 : 3;
   auto e = torch::empty({rows, B, n}, windows.options());
   float* out = e.data_ptr<float>();
-  for (int r = 0; r < rows; ++r)
-    for (int64_t b = 0; b < B; ++b)
-      for (int64_t i = 0; i < n; ++i) {
-        double total = 0.0;
-        for (int64_t c = 0; c < chunks; ++c) total += part[((c * n + i) * ROWS + r) * B + b];
-        out[(r * B + b) * n + i] = float(total);
-      }
+  // each sum over the chunks in order (part read in its own order: it is 3 MB on the horse)
+  std::vector<double> total(size_t(rows) * B * n, 0.0);
+  for (int64_t c = 0; c < chunks; ++c)
+    for (int64_t i = 0; i < n; ++i)
+      for (int r = 0; r < rows; ++r)
+        for (int64_t b = 0; b < B; ++b) total[(r * B + b) * n + i] += part[((c * n + i) * ROWS + r) * B + b];
+  for (size_t q = 0; q < total.size(); ++q) out[q] = float(total[q]);
   return e;
 }
 
