@@ -294,9 +294,13 @@ def main() -> None:
         finally:
             if frozen:
                 gc.unfreeze()
-        peak_after = matmul_gflops(device, repeat=3)
-        print(f"[{impl}] float32 matmul after the iterations: {peak_after:.1f} GFLOP/s; load average "
-              f"{os.getloadavg()[0]:.1f}")
+        peak_after, bw_after = matmul_gflops(device, repeat=3), copy_gbps(device)
+        # both limits again, after: this VM's speed moves from minute to minute (its neighbours' load),
+        # and neither figure alone predicts the iterations' (2026-12-03: 0.86-0.88 s at 29.6-30.2
+        # GB/s before, 1.09 s at 20.7, 1.05 s at 29.0 before and 38.9 after)
+        print(f"[{impl}] after the iterations: float32 matmul {peak_after:.1f} GFLOP/s, copy {bw_after:.1f} GB/s; "
+              f"load average {os.getloadavg()[0]:.1f}")
+        results.update(matmul_gflops_after=peak_after, copy_gbps_after=bw_after)
         print(f"[{impl}] {'variant':10s} {'s/it':>6s} {'best':>6s} {'CPU s':>6s} {'GFLOP/s':>8s} "
               f"{'of mm':>6s} {'s x mm':>7s} {'7000 it':>8s}   floors: FLOP, bytes")
         for v in variants:
