@@ -14,8 +14,11 @@ Whole training iterations are compared the same way by ``iteration_ab.py``.
     python benchmarks/kernel_ab.py --against HEAD~3 [--threads 2] [--calls 150] [--windows 16]
 
 Operations: conv forward with tanh and without, conv backward with the tanh derivative and
-without (a revision without ``input_tanh`` is called with its own signature), ``fc_wx`` (W x)
-and ``fc_wtx`` (W^T h).
+without (a revision without ``input_tanh`` is called with its own signature), ``fc_wx`` (W x),
+``fc_wtx`` (W^T h), and the window losses' ``frame_errors`` forward and backward with L_motion's
+steps on a roll-out's 32 frames of 2 x (windows / 2) chains (the frames and the truth, 233 MB,
+come from memory: a 96 MB read-only pass, not timed, before each of these calls, as in the
+training loop).
 """
 
 from __future__ import annotations
@@ -91,10 +94,19 @@ def main() -> None:
         "fc_wx (W x)": lambda o: o.fc_wx(W, xf, None),
         "fc_wtx (W^T h)": lambda o: o.fc_wtx(W, h, None),
     }
+    # the window losses: n frames (V, 9, R) of R = 2 x (B / 2) chains, the truth (B / 2, n, V x 9)
+    n_frames, Bw = 32, max(1, B // 2)
+    frames = [torch.randn(V, 9, 2 * Bw, generator=g) for _ in range(n_frames)]
+    truth, ge = torch.randn(Bw, n_frames, V * 9, generator=g), torch.randn(6, Bw, n_frames, generator=g)
+    flush = torch.ones(96 << 18)  # 96 MB, read before each call of these (not timed)
+    operations["frame_errors, steps"] = lambda o: o.frame_errors(frames, truth, True)
+    operations["frame_errors backward"] = lambda o: o.frame_errors_backward(ge, frames, truth,
+                                                                          list(range(1, n_frames)))
+    cold = {"frame_errors, steps", "frame_errors backward"}
     print(f"horse: {V} vertices, {B} windows, FC weight 128 x {V * 9}, {args.threads} threads; "
           f"{args.calls} alternated calls each; milliseconds, 10th percentile / median")
     names = list(builds)
-    print(f"{'operation':24s} {names[0]:>22s} {names[1]:>22s}   same bits")
+    print(f"{'operation':30s} {names[0]:>22s} {names[1]:>22s}   same bits")
     for label, op in operations.items():
         outs = [op(builds[n]) for n in names]  # warm-up, and the outputs to compare
         flat = [[o] if isinstance(o, torch.Tensor) else list(o) for o in outs]
@@ -102,11 +114,13 @@ def main() -> None:
         times = {n: [] for n in names}
         for i in range(args.calls):
             for n in (names if i % 2 == 0 else names[::-1]):
+                if label in cold:
+                    flush.sum()
                 t0 = time.perf_counter()
                 op(builds[n])
                 times[n].append(time.perf_counter() - t0)
         cells = [f"{np.percentile(times[n], 10) * 1e3:9.3f} / {np.median(times[n]) * 1e3:8.3f}" for n in names]
-        print(f"{label:24s} {cells[0]:>22s} {cells[1]:>22s}   {'yes' if same else 'no'}")
+        print(f"{label:30s} {cells[0]:>22s} {cells[1]:>22s}   {'yes' if same else 'no'}")
 
 
 if __name__ == "__main__":
