@@ -22,9 +22,10 @@ def limb():
     return Topology.from_faces(seq.faces, seq.n_vertices)
 
 
-def make(topo, variant="bd", conv="sparse", latent=16, layers=2, seed=0):
+def make(topo, variant="bd", conv="sparse", latent=16, layers=2, seed=0, input_norm=False):
     torch.manual_seed(seed)
-    cfg = ModelConfig(n_vertices=topo.n_vertices, latent=latent, lstm_layers=layers, variant=variant, conv_impl=conv)
+    cfg = ModelConfig(n_vertices=topo.n_vertices, latent=latent, lstm_layers=layers, variant=variant, conv_impl=conv,
+                      input_norm=input_norm)
     return BDLSTM(cfg, topo)
 
 
@@ -281,7 +282,9 @@ def _reference_rollout(m, first, steps, state, n_forward):
 @pytest.mark.parametrize("windows", [3, 4])  # 6 chains: the FC products by torch; 8: by csrc/fc.cpp
 # the FC weight gradient by csrc/fc.cpp's kernel, or by torch in one block of rows, in several
 @pytest.mark.parametrize("bank_rows", [None, 4096, 50])
-def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch, windows, bank_rows):
+# the default recipe's input normalisation, folded into the fast path's first encoder layer
+@pytest.mark.parametrize("input_norm", [False, True])
+def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch, windows, bank_rows, input_norm):
     """Loss and every gradient of the fused roll-out equal the plain reference to 1e-5 relative."""
     from meshseq import model as model_module
     from meshseq.model import _GradBank
@@ -297,11 +300,13 @@ def test_fast_rollout_matches_plain_step_by_step_reference(limb, monkeypatch, wi
         monkeypatch.setattr(model_module, "fc_weight_gradient_supported", lambda left, rights: False)
         monkeypatch.setattr(_GradBank, "ROWS", bank_rows)
 
-    m = make(limb, latent=16, layers=3)
+    m = make(limb, latent=16, layers=3, input_norm=input_norm)
     with torch.no_grad():
         for p in m.parameters():
             p.add_(0.05 * torch.randn_like(p))  # non-zero biases too
     w = torch.randn(windows, 6, limb.n_vertices, 9) * 0.3
+    if input_norm:  # an offset per vertex and channel, a spread per channel, far from 0 and 1
+        m.set_input_norm((0.2 * torch.randn(40, limb.n_vertices, 9) + torch.randn(limb.n_vertices, 9)).numpy())
     objective = WindowLoss(m, TrainConfig(w_vertex=0.0))
 
     def run():

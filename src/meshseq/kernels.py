@@ -382,10 +382,11 @@ def ring_csr(ring, transpose: bool = False) -> tuple[torch.Tensor, torch.Tensor,
 
 
 def _layer_forward(x, w_self, w_ring, bias, ring, act: bool, residual, cpp: bool) -> torch.Tensor:
-    """One layer ``act(W_s x + W_r (A x) + b) [+ residual]`` on contiguous ``(V, C_in, B)``."""
+    """One layer ``act(W_s x + W_r (A x) + b) [+ residual]`` on contiguous ``(V, C_in, B)``; ``bias``
+    ``(C_out,)``, or ``(V, C_out)`` (one per vertex)."""
     if cpp:
         return torch.ops.meshseq.conv_forward(x, w_self, w_ring, bias, *ring_csr(ring), act, residual)
-    y = torch.matmul(w_self, x).add_(torch.matmul(w_ring, ring_mean(ring, x))).add_(bias[:, None])
+    y = torch.matmul(w_self, x).add_(torch.matmul(w_ring, ring_mean(ring, x))).add_(bias.unsqueeze(-1))
     if act:
         y.tanh_()
     if residual is not None:
@@ -393,12 +394,19 @@ def _layer_forward(x, w_self, w_ring, bias, ring, act: bool, residual, cpp: bool
     return y
 
 
-def _layer_backward(g, y, x, w_self, w_ring, ring, input_tanh: bool, cpp: bool):
+def _layer_backward(g, y, x, w_self, w_ring, ring, input_tanh: bool, cpp: bool, vertex_bias: bool = False):
     """``(gx, g_w_self, g_w_ring, g_bias)`` of one layer from ``g``, the gradient of its output;
     ``y``: its output when it has tanh (``g`` is then multiplied by ``1 - y^2`` first), None when it
     has none or ``g`` is already its pre-activation's gradient; ``input_tanh``: ``x`` is a tanh
-    output, and ``gx`` comes back times ``1 - x^2`` (the layer below's pre-activation gradient)."""
+    output, and ``gx`` comes back times ``1 - x^2`` (the layer below's pre-activation gradient);
+    ``vertex_bias``: the layer's bias is ``(V, C_out)``, and so is ``g_bias`` (the lanes' sums)."""
     if cpp:
+        if vertex_bias:
+            if y is not None:
+                g = torch.ops.aten.tanh_backward(g, y)
+            gx, gws, gwr, _ = torch.ops.meshseq.conv_backward(g.contiguous(), None, x, w_self, w_ring,
+                                                               *ring_csr(ring, True), input_tanh)
+            return gx, gws, gwr, g.sum(2)
         return torch.ops.meshseq.conv_backward(g.contiguous(), y, x, w_self, w_ring, *ring_csr(ring, True), input_tanh)
     if y is not None:
         g = torch.ops.aten.tanh_backward(g, y)
@@ -408,7 +416,7 @@ def _layer_backward(g, y, x, w_self, w_ring, ring, input_tanh: bool, cpp: bool):
         gx = torch.ops.aten.tanh_backward(gx, x)
     gws = torch.einsum("vob,vcb->oc", g, x)
     gwr = torch.einsum("vob,vcb->oc", atg, x)
-    return gx, gws, gwr, g.sum((0, 2))
+    return gx, gws, gwr, g.sum(2) if vertex_bias else g.sum((0, 2))
 
 
 class MeshConvFused(torch.autograd.Function):
@@ -446,8 +454,9 @@ class MeshConvStack(torch.autograd.Function):
     ``act_k(W_s x + W_r (A x) + b_k)``, ``residual`` ``(V, C_out, B)`` (or None) added after the last
     (whose ``act`` must then be False).
 
-    ``params``: ``w_self, w_ring, bias`` of each layer in order; ``acts``: a tuple of bools, one
-    per layer. The same arithmetic as ``MeshConvFused`` layer by layer; the backward differs in one
+    ``params``: ``w_self, w_ring, bias`` of each layer in order (a bias ``(C_out,)``, or ``(V, C_out)``:
+    one per vertex, how the encoder's first layer folds in the input normalisation,
+    ``BDLSTM._encode_vm``); ``acts``: a tuple of bools, one per layer. The same arithmetic as ``MeshConvFused`` layer by layer; the backward differs in one
     place: a layer whose input is the previous layer's tanh output returns its input gradient
     already times ``1 - x^2`` (the C++ kernel multiplies while it writes it), so the layers below
     the top need no tanh-derivative pass of their own over (gradient, output).
@@ -483,7 +492,8 @@ class MeshConvStack(torch.autograd.Function):
             w_self, w_ring = params[3 * k], params[3 * k + 1]
             y = y_top if k == K - 1 else None  # below the top, g is already the pre-activation's gradient
             input_tanh = k > 0 and ctx.acts[k - 1]
-            g, gws, gwr, gb = _layer_backward(g, y, inputs[k], w_self, w_ring, ctx.ring, input_tanh, ctx.cpp)
+            g, gws, gwr, gb = _layer_backward(g, y, inputs[k], w_self, w_ring, ctx.ring, input_tanh, ctx.cpp,
+                                              vertex_bias=params[3 * k + 2].dim() == 2)
             grads[3 * k: 3 * k + 3] = [gws, gwr, gb]
         return (g, gy if ctx.has_residual else None, None, None, *grads)
 

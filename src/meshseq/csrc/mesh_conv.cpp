@@ -2,6 +2,7 @@
 //
 //   y = act(Ws x + Wr (A x) + b) [+ r]        x (V, Ci, B), y (V, Co, B), float32, contiguous
 //
+// (b per output channel, or per vertex and channel: conv_forward's bias (Co) or (V, Co))
 // Ws, Wr (Co, Ci) are the self and ring channel maps, A the row-normalised 1-ring mean (CSR:
 // rowptr (V + 1), col, weight), act tanh or nothing, r an optional residual (the decoder's last
 // layer adds the current frame). The ring mean is linear and acts on vertices only, so
@@ -66,9 +67,10 @@ inline void own_and_ring(const float* a, Csr M, int64_t v, int C, int B, int b0,
 // T: a tile of W windows
 // CI, CO: the channel counts when known at compile time (0: at run time, ci and co); BT: the number
 // of windows when known (a training batch of 16 chains: one tile; 0: at run time, b_rt)
+// bias_stride: 0 for a bias per output channel (Co), Co for one per vertex and channel (V, Co)
 template <typename T, int W, int CI, int CO, int BT = 0>
 void forward_tiles(const float* X, float* Y, const float* Ws, const float* Wr, const float* bias,
-                   Csr A, const float* R, int64_t V, int ci, int co, int b_rt, bool act) {
+                   Csr A, const float* R, int64_t V, int ci, int co, int b_rt, bool act, int64_t bias_stride) {
   const int Ci = CI ? CI : ci, Co = CO ? CO : co, B = BT ? BT : b_rt;
   const int64_t ys = int64_t(Co) * B;
   at::parallel_for(0, V, 128, [&](int64_t v0, int64_t v1) {
@@ -77,7 +79,7 @@ void forward_tiles(const float* X, float* Y, const float* Ws, const float* Wr, c
       for (int b0 = 0; b0 < B; b0 += W) {
         own_and_ring(X, A, v, Ci, B, b0, xv, ax);
         for (int o = 0; o < Co; ++o) {
-          T acc = splat<T>(bias[o]);
+          T acc = splat<T>(bias[v * bias_stride + o]);
           for (int c = 0; c < Ci; ++c) acc += Ws[o * Ci + c] * xv[c] + Wr[o * Ci + c] * ax[c];
           if (act) acc = tanh_rational(acc);
           if (R) acc += load<T>(R + v * ys + o * B + b0);
@@ -201,9 +203,15 @@ torch::Tensor conv_forward(torch::Tensor x_in, torch::Tensor w_self, torch::Tens
   torch::Tensor r;
   if (residual.has_value()) r = pad_windows(*residual, B);
   const float* R = residual.has_value() ? r.data_ptr<float>() : nullptr;
+  // a bias per vertex and channel (V, Co): the encoder's first layer reading the raw frame of a model
+  // with input normalisation (kernels.MeshConvStack)
+  TORCH_CHECK(b.scalar_type() == torch::kFloat && ((b.dim() == 1 && b.size(0) == Co) ||
+                                                   (b.dim() == 2 && b.size(0) == V && b.size(1) == Co)),
+              "mesh_conv: the bias must be (C_out,) or (V, C_out) float32");
+  const int64_t bias_stride = b.dim() == 2 ? Co : 0;
   auto run = [&](auto tiles) {
     tiles(x.data_ptr<float>(), y.data_ptr<float>(), ws.data_ptr<float>(), wr.data_ptr<float>(), b.data_ptr<float>(),
-          csr(rowptr, col, weight), R, V, Ci, Co, B, act);
+          csr(rowptr, col, weight), R, V, Ci, Co, B, act, bias_stride);
   };
   // ACAP's 9 channels, and 16 windows: sizes known to the compiler (constant offsets, fewer registers)
   const bool nine = Ci == 9 && Co == 9;
