@@ -29,7 +29,7 @@ def plain_layer(x, ws, wr, b, ring, act, residual):
     """``act(W_s x + A (W_r x) + b) [+ r]`` with a dense ``A``, plain autograd, ``x`` ``(V, C, B)``."""
     A = ring.A.to_dense()
     y = torch.einsum("oc,vcb->vob", ws, x) + torch.einsum("uv,vob->uob", A, torch.einsum("oc,vcb->vob", wr, x))
-    y = y + b[:, None]
+    y = y + b.unsqueeze(-1)  # b (C_out,), or (V, C_out): one per vertex
     if act:
         y = torch.tanh(y)
     return y if residual is None else y + residual
@@ -93,9 +93,11 @@ def test_cpu_kernel_matches_plain_autograd_for_any_channels_on_a_larger_mesh(big
 
 # the encoder's stack (tanh after each layer) and the decoder's (tanh, tanh, linear + residual)
 @pytest.mark.parametrize("acts,residual", [((True, True, True), False), ((True, True, False), True),
-                                           ((False, True), False)])
+                                           ((False, True), False), ((True,), False)])
 @pytest.mark.parametrize("path", ["cpp", "torch"])
-def test_conv_stack_matches_plain_autograd_layer_by_layer(big_ring, acts, residual, path, monkeypatch):
+# the first layer's bias one per vertex (V, C_out): the encoder's input normalisation folded in
+@pytest.mark.parametrize("vertex_bias", [False, True])
+def test_conv_stack_matches_plain_autograd_layer_by_layer(big_ring, acts, residual, path, vertex_bias, monkeypatch):
     """MeshConvStack's backward hands the layers below the top their pre-activation gradients
     (the input gradient times 1 - x^2 written by the layer above): the same gradients as plain
     autograd through the layers one by one."""
@@ -108,6 +110,8 @@ def test_conv_stack_matches_plain_autograd_layer_by_layer(big_ring, acts, residu
     x, gy = torch.randn(V, C, B), torch.randn(V, C, B)
     r = torch.randn(V, C, B) if residual else None
     params = [t for _ in acts for t in (0.4 * torch.randn(C, C), 0.4 * torch.randn(C, C), torch.randn(C))]
+    if vertex_bias:
+        params[2] = torch.randn(V, C)
 
     def run(stack):
         leaves = [t.detach().clone().requires_grad_() for t in [x] + params]
