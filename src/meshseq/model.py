@@ -475,12 +475,13 @@ def _normalizing_layer(model: "BDLSTM", w_self: torch.Tensor, w_ring: torch.Tens
     then never makes (nor saves for its backward) a normalised copy of each frame: that copy and
     its backward pass cost the default recipe 56 +- 10 ms an iteration on the horse. Gradients
     flow to ``w_self``, ``w_ring``, ``bias`` through these few small operations."""
-    with torch.no_grad():
-        inv = 1.0 / model.input_spread.view(-1)  # (C,)
-        offset = model.input_offset[:, :, 0].t().contiguous()  # (V, C)
-        ring_offset = model.ring(offset)  # (V, C)
-    w_self, w_ring = w_self * inv, w_ring * inv  # the input channels (columns) scaled
-    return w_self, w_ring, (bias - offset @ w_self.t() - ring_offset @ w_ring.t()).contiguous()
+    with torch.autocast(model.input_offset.device.type, enabled=False):  # float32 under --precision bf16 too
+        with torch.no_grad():
+            inv = 1.0 / model.input_spread.view(-1)  # (C,)
+            offset = model.input_offset[:, :, 0].t().contiguous()  # (V, C)
+            ring_offset = model.ring(offset)  # (V, C)
+        w_self, w_ring = w_self * inv, w_ring * inv  # the input channels (columns) scaled
+        return w_self, w_ring, (bias - offset @ w_self.t() - ring_offset @ w_ring.t()).contiguous()
 
 
 class _FC:
