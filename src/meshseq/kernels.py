@@ -457,9 +457,10 @@ class MeshConvStack(torch.autograd.Function):
     ``params``: ``w_self, w_ring, bias`` of each layer in order (a bias ``(C_out,)``, or ``(V, C_out)``:
     one per vertex, how the encoder's first layer folds in the input normalisation,
     ``model._normalizing_layer``); ``acts``: a tuple of bools, one per layer. The same arithmetic
-    as ``MeshConvFused`` layer by layer; the backward differs in one place: a layer whose input is the previous layer's tanh output returns its input gradient
-    already times ``1 - x^2`` (the C++ kernel multiplies while it writes it), so the layers below
-    the top need no tanh-derivative pass of their own over (gradient, output).
+    as ``MeshConvFused`` layer by layer; the backward differs in one place: a layer whose input is
+    the previous layer's tanh output returns its input gradient already times ``1 - x^2`` (the C++
+    kernel multiplies while it writes it), so the layers below the top need no tanh-derivative
+    pass of their own over (gradient, output).
     """
 
     @staticmethod
