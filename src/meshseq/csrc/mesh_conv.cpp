@@ -2,10 +2,10 @@
 //
 //   y = act(Ws x + Wr (A x) + b) [+ r]        x (V, Ci, B), y (V, Co, B), float32, contiguous
 //
-// (b per output channel, or per vertex and channel: conv_forward's bias (Co) or (V, Co))
 // Ws, Wr (Co, Ci) are the self and ring channel maps, A the row-normalised 1-ring mean (CSR:
-// rowptr (V + 1), col, weight), act tanh or nothing, r an optional residual (the decoder's last
-// layer adds the current frame). The ring mean is linear and acts on vertices only, so
+// rowptr (V + 1), col, weight), b the bias, per output channel (Co) or per vertex and channel
+// (V, Co: the encoder's first layer with the input normalisation folded in), act tanh or nothing,
+// r an optional residual (the decoder's last layer adds the current frame). The ring mean is linear and acts on vertices only, so
 // A (Wr x) = Wr (A x): each vertex gathers its neighbours' (Ci, B) blocks (contiguous rows of the
 // vertex-major layout), and the two 9 x 9 maps, the bias, tanh and the residual follow while
 // the block is in registers: x is read once (plus neighbour reads from cache), y written once.
