@@ -34,7 +34,7 @@ float32: each product is one stream over ``W``, each weight broadcast against a 
 the columns (2.0 ms a product on the horse, 2 threads: about the time to read ``W`` from memory);
 BLAS ran these skinny shapes at a third to a half of that rate (see that file). Its weight
 gradient over a roll-out (``fc_weight_gradient``) sums each weight's terms in registers, reading
-the roll-out's frames where they lie (with AVX-512).
+the roll-out's frames where they lie. The same code runs on AVX2 (two registers a 16-window tile; smaller register tiles there).
 
 The LSTM steps (``LSTMStep``, ``csrc/lstm.cpp``): all layers of a step as one autograd node, the
 small products register-tiled (BLAS repacked the weights at every call), the gates in one pass.
@@ -187,7 +187,7 @@ def fc_transposed_product(weight: torch.Tensor, h: torch.Tensor, bias: torch.Ten
 
 
 def fc_weight_gradient_supported(left: torch.Tensor, rights: list[torch.Tensor]) -> bool:
-    """Whether ``fc_weight_gradient`` runs ``csrc/fc.cpp`` for these pairs (CPU with AVX-512, float32, L
+    """Whether ``fc_weight_gradient`` runs ``csrc/fc.cpp`` for these pairs (CPU float32, L
     in 16, 32, 64, 128, 256); otherwise the caller forms the gradient with torch (``model._GradBank``)."""
     return (left.dtype == torch.float32 and _use_cpu_kernels(left)
             and torch.ops.meshseq.fc_weight_grad_supports(left.shape[1])

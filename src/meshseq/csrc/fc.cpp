@@ -9,46 +9,49 @@
 // multiply-add per weight and column, W read once from memory. BLAS treats these shapes as
 // general matrix products (packing panels of W, blocking for a large third dimension) and ran
 // them at 60-88 GFLOP/s on 2 cores; here each weight is loaded once, broadcast, and multiplied
-// with a SIMD vector of B columns (16 windows = one AVX-512 register, 8 = one AVX2 register).
+// with a SIMD vector of B columns (16 windows: one AVX-512 register, or two AVX2 registers, simd.h).
 //
-// fc_wx: 8 rows of W at a time against one vector of X (8 independent accumulators, 8
-// sequential streams of W; X's chunk stays in the L2 cache across the row blocks); the N columns are cut into fixed chunks (NCHUNK_COLS), each chunk's
-// partial sums stored, and the chunks summed in order afterwards: the same bits with any number
-// of threads (bit-exact resume). fc_wtx: 16 columns of W (one cache line of each row) at a time,
-// all L rows, 16 accumulators; each output row is written once, so no reduction is needed.
-// Measured (horse, N = 75879, B = 16, 2 threads, 10th percentile of 60): fc_wx 1.96 ms, fc_wtx 2.04
-// ms, about the time to read W's 39 MB from memory (27 GB/s measured by a read-only sum); with W
-// in the L3 cache (N = 20000) 0.39 and 0.37 ms, 6.6 G multiply-adds of 16 lanes a second, above
-// a 4096^3 float32 matmul's rate on this machine. (torch.addmm/mm: 3.98 and 5.18 ms, 2026-12-02.)
+// fc_wx: WX_ROWS rows of W at a time against one vector of X (that many independent accumulators and
+// sequential streams of W; X's chunk stays in the L2 cache across the row blocks); the N columns are
+// cut into fixed chunks (NCHUNK_COLS), each chunk's partial sums stored, and the chunks summed in
+// order afterwards: the same bits with any number of threads (bit-exact resume). fc_wtx: blocks of
+// WTX_BLOCK columns of W (16 with AVX-512: one cache line of each row), all L rows, WTX_SUB
+// accumulators a pass; each output row is written once, so no reduction is needed.
+// Measured with AVX-512 (AMD Zen 4; horse, N = 75879, B = 16, 2 threads, 10th percentile of 60):
+// fc_wx 1.96 ms, fc_wtx 2.04 ms, about the time to read W's 39 MB from memory (27 GB/s measured by a
+// read-only sum); with W in the L3 cache (N = 20000) 0.39 and 0.37 ms, 6.6 G multiply-adds of 16
+// lanes a second, above a 4096^3 float32 matmul's rate on this machine. (torch.addmm/mm: 3.98 and
+// 5.18 ms, 2026-12-02.) With AVX2 (AMD Zen 3, 2026-12-03): fc_wx 2.6-3.7 ms, fc_wtx 3.2-3.4 ms
+// (torch.mm 3.5-5 and 4.5-9 ms); 21 ms each before v16 became a register pair there.
 
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
 #include <optional>
 
+#include "simd.h"
+
 namespace {
-
-typedef float v16 __attribute__((vector_size(64)));
-typedef float v8 __attribute__((vector_size(32)));
-
-template <typename T> inline T load(const float* p) { T r; __builtin_memcpy(&r, p, sizeof(T)); return r; }
-template <typename T> inline void store(float* p, T v) { __builtin_memcpy(p, &v, sizeof(T)); }
 
 typedef float v4 __attribute__((vector_size(16)));
 
 // the lanes' sum by halves (a pairwise tree: 4 vector adds, not 15 dependent scalar ones)
-inline float lanes_sum(v4 v) { return (v[0] + v[2]) + (v[1] + v[3]); }
-inline float lanes_sum(v8 v) {
+inline float pairwise_sum(v4 v) { return (v[0] + v[2]) + (v[1] + v[3]); }
+inline float pairwise_sum(v8 v) {
   v4 lo, hi;
   __builtin_memcpy(&lo, &v, sizeof(v4));
   __builtin_memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof(v4), sizeof(v4));
-  return lanes_sum(lo + hi);
+  return pairwise_sum(lo + hi);
 }
-inline float lanes_sum(v16 v) {
+inline float pairwise_sum(v16 v) {
+#if defined(__AVX512F__)
   v8 lo, hi;
   __builtin_memcpy(&lo, &v, sizeof(v8));
   __builtin_memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof(v8), sizeof(v8));
-  return lanes_sum(lo + hi);
+  return pairwise_sum(lo + hi);
+#else
+  return pairwise_sum(v.lo + v.hi);
+#endif
 }
 
 constexpr int64_t NCHUNK_COLS = 2048;  // columns of W per partial sum of fc_wx (X's chunk: 128 KB at B = 16)
@@ -57,6 +60,17 @@ constexpr int64_t NCHUNK_COLS = 2048;  // columns of W per partial sum of fc_wx 
 // (a prefetch past the end of W is harmless: it never faults). Measured on the horse, 2 threads:
 // 12.9 ms a product without, 2.45 ms at 64 floats (2.57 at 32, 2.95 at 96).
 constexpr int PREFETCH = 64;
+
+// accumulators per pass: fc_wx's rows of W (WX_ROWS), fc_wtx's columns (WTX_SUB of its WTX_BLOCK-column
+// blocks). AVX-512's 32 vector registers hold 8 and 16 tiles of 16 windows. With AVX2's 16 a tile is two
+// registers: 6 rows (12 sums) and 6 columns (12 sums) measured best on an AMD EPYC (Zen 3, 2 threads,
+// p10 of 60 alternated calls): fc_wx 2.68 ms at 6 rows against 3.30 at 8 (spilled) and 3.68 at 4;
+// fc_wtx 3.37 at 6 columns against 4.8 at 4 and 3.8 at 8 (blocks of 16).
+#if defined(__AVX512F__)
+constexpr int WX_ROWS = 8, WTX_BLOCK = 16, WTX_SUB = 16;
+#else
+constexpr int WX_ROWS = 6, WTX_BLOCK = 12, WTX_SUB = 6;
+#endif
 
 // partial (LB, B) rows l0.. of one column chunk [n0, n1): sum_n W[l, n] X[n, :]
 template <typename T, int W_, int LB>
@@ -86,44 +100,47 @@ void wx(const float* Wm, const float* X, float* partial, float* x_sums, int64_t 
       const int64_t n0 = k * NCHUNK_COLS, n1 = std::min(N, n0 + NCHUNK_COLS);
       float* p = partial + k * L * B;
       int64_t l0 = 0;
-      for (; l0 + 8 <= L; l0 += 8) wx_rows<T, W_, 8>(Wm, N, X, l0, n0, n1, B, p);
+      for (; l0 + WX_ROWS <= L; l0 += WX_ROWS) wx_rows<T, W_, WX_ROWS>(Wm, N, X, l0, n0, n1, B, p);
       for (; l0 < L; ++l0) wx_rows<T, W_, 1>(Wm, N, X, l0, n0, n1, B, p);
       if (x_sums)
         for (int64_t n = n0; n < n1; ++n) {
           T acc = load<T>(X + n * B);
           for (int b0 = W_; b0 < B; b0 += W_) acc += load<T>(X + n * B + b0);
-          x_sums[n] = lanes_sum(acc);
+          x_sums[n] = pairwise_sum(acc);
         }
     }
   });
 }
 
 // out rows [n0, n0 + NB) = W[:, n0:n0+NB]^T H (+ bias)
-template <typename T, int W_, int NB>
+// NS columns at a time (NS accumulators in registers); the first tile of windows prefetches W's lines
+template <typename T, int W_, int NB, int NS = NB>
 inline void wtx_cols(const float* Wm, int64_t L, int64_t N, const float* H, const float* bias, int64_t n0, int B,
                      float* out) {
   for (int b0 = 0; b0 < B; b0 += W_) {
-    T acc[NB];
-    for (int j = 0; j < NB; ++j) acc[j] = T{};
-    for (int64_t l = 0; l < L; ++l) {
-      const T hv = load<T>(H + l * B + b0);
-      const float* w = Wm + l * N + n0;
-      __builtin_prefetch(w + PREFETCH, 0, 0);
-      for (int j = 0; j < NB; ++j) acc[j] += w[j] * hv;
-    }
-    for (int j = 0; j < NB; ++j) {
-      if (bias) acc[j] += bias[n0 + j];
-      store(out + (n0 + j) * B + b0, acc[j]);
+    for (int s0 = 0; s0 < NB; s0 += NS) {
+      T acc[NS];
+      for (int j = 0; j < NS; ++j) acc[j] = T{};
+      for (int64_t l = 0; l < L; ++l) {
+        const T hv = load<T>(H + l * B + b0);
+        const float* w = Wm + l * N + n0 + s0;
+        if (b0 == 0) __builtin_prefetch(w + PREFETCH, 0, 0);
+        for (int j = 0; j < NS; ++j) acc[j] += w[j] * hv;
+      }
+      for (int j = 0; j < NS; ++j) {
+        if (bias) acc[j] += bias[n0 + s0 + j];
+        store(out + (n0 + s0 + j) * B + b0, acc[j]);
+      }
     }
   }
 }
 
 template <typename T, int W_>
 void wtx(const float* Wm, const float* H, const float* bias, float* out, int64_t L, int64_t N, int B) {
-  constexpr int NB = 16;
+  constexpr int NB = WTX_BLOCK;
   const int64_t nblocks = N / NB;
   at::parallel_for(0, nblocks, 16, [&](int64_t j0, int64_t j1) {
-    for (int64_t j = j0; j < j1; ++j) wtx_cols<T, W_, NB>(Wm, L, N, H, bias, j * NB, B, out);
+    for (int64_t j = j0; j < j1; ++j) wtx_cols<T, W_, NB, WTX_SUB>(Wm, L, N, H, bias, j * NB, B, out);
   });
   for (int64_t n0 = nblocks * NB; n0 < N; ++n0) wtx_cols<T, W_, 1>(Wm, L, N, H, bias, n0, B, out);
 }
@@ -160,23 +177,23 @@ int tile_width(int64_t B) {
 // with any number of threads.
 constexpr int GRAD_AHEAD = 4;  // tiles ahead whose right rows are prefetched
 
-// rows n, n + NR of g's columns; L = 16 LV
-template <int NR, int LV>
+// rows n .. n + NR of g's columns, latent rows 16 j0 .. 16 (j0 + LP) of L = 16 LV
+template <int NR, int LP, int LV>
 inline void grad_tile(const float* const* rights, const int64_t* widths, int64_t T, const float* left,
-                      int64_t n, int64_t N, float* g) {
-  v16 acc[NR][LV];
+                      int64_t n, int64_t N, int j0, float* g) {
+  v16 acc[NR][LP];
   for (int i = 0; i < NR; ++i)
-    for (int j = 0; j < LV; ++j) acc[i][j] = v16{};
-  const float* lrow = left;
+    for (int j = 0; j < LP; ++j) acc[i][j] = v16{};
+  const float* lrow = left + 16 * j0;
   for (int64_t t = 0; t < T; ++t) {
     const int64_t B = widths[t];
     const float* r = rights[t] + n * B;
-    if (n + (GRAD_AHEAD + 1) * NR <= N)  // the rows GRAD_AHEAD tiles ahead (a row of 16 values: one line)
+    if (j0 == 0 && n + (GRAD_AHEAD + 1) * NR <= N)  // the rows GRAD_AHEAD tiles ahead (a row of 16 values: one line)
       for (int i = 0; i < NR; ++i) __builtin_prefetch(r + (GRAD_AHEAD * NR + i) * B, 0, 0);
     for (int64_t b = 0; b < B; ++b, lrow += LV * 16) {
       float s[NR];
       for (int i = 0; i < NR; ++i) s[i] = r[i * B + b];
-      for (int j = 0; j < LV; ++j) {
+      for (int j = 0; j < LP; ++j) {
         v16 w = load<v16>(lrow + 16 * j);
 #if defined(__AVX512F__)
         __asm__("" : "+v"(w));  // one load into a register for the NR multiply-adds, not NR memory operands
@@ -186,35 +203,45 @@ inline void grad_tile(const float* const* rights, const int64_t* widths, int64_t
     }
   }
   // through a buffer: reading the accumulators' lanes directly made the compiler keep them on the stack
-  float buf[NR][LV * 16];
+  float buf[NR][LP * 16];
   for (int i = 0; i < NR; ++i)
-    for (int j = 0; j < LV; ++j) store(buf[i] + 16 * j, acc[i][j]);
-  for (int l = 0; l < LV * 16; ++l)
-    for (int i = 0; i < NR; ++i) g[l * N + n + i] = buf[i][l];
+    for (int j = 0; j < LP; ++j) store(buf[i] + 16 * j, acc[i][j]);
+  for (int l = 0; l < LP * 16; ++l)
+    for (int i = 0; i < NR; ++i) g[(16 * j0 + l) * N + n + i] = buf[i][l];
 }
 
-// NR x LV accumulators (at most 24 of the 32 vector registers) and the NR broadcasts
+// NR rows x LP latent vectors of sums in registers, and the NR broadcasts. AVX-512 (32 registers): all L
+// at once, NR x LV <= 24. AVX2 (16 registers, a v16 two of them): one latent vector a pass over the
+// same NR = 6 rows (12 registers of sums; each vector of left read from the L2 cache serves 6 rows).
+// L = 128 on the horse (AMD EPYC, Zen 3, 2 threads): 211 ms against 291 at 3 rows x 2 vectors, 339 at
+// 2 x 2, 432 at 1 x 4, and 446 for torch's concatenation, matmul and transpose.
+#if defined(__AVX512F__)
 template <int LV> constexpr int grad_rows() { return LV >= 16 ? 1 : LV == 8 ? 3 : LV == 4 ? 6 : 8; }
+template <int LV> constexpr int grad_pass() { return LV; }
+#else
+template <int LV> constexpr int grad_rows() { return 6; }
+template <int LV> constexpr int grad_pass() { return 1; }
+#endif
+
+template <int NR, int LV>
+inline void grad_rows_all_passes(const float* const* rights, const int64_t* widths, int64_t T, const float* left,
+                                 int64_t n, int64_t N, float* g) {
+  constexpr int LP = grad_pass<LV>();
+  for (int j0 = 0; j0 < LV; j0 += LP) grad_tile<NR, LP, LV>(rights, widths, T, left, n, N, j0, g);
+}
 
 template <int LV>
 void grad_tiles(const float* const* rights, const int64_t* widths, int64_t T, const float* left, int64_t N, float* g) {
   constexpr int NR = grad_rows<LV>();
   const int64_t tiles = N / NR;
   at::parallel_for(0, tiles, 64, [&](int64_t k0, int64_t k1) {
-    for (int64_t k = k0; k < k1; ++k) grad_tile<NR, LV>(rights, widths, T, left, k * NR, N, g);
+    for (int64_t k = k0; k < k1; ++k) grad_rows_all_passes<NR, LV>(rights, widths, T, left, k * NR, N, g);
   });
-  for (int64_t n = tiles * NR; n < N; ++n) grad_tile<1, LV>(rights, widths, T, left, n, N, g);
+  for (int64_t n = tiles * NR; n < N; ++n) grad_rows_all_passes<1, LV>(rights, widths, T, left, n, N, g);
 }
 
-// whether fc_weight_grad has a kernel for L latent rows: L = 16, 32, 64, 128 or 256, with AVX-512 (its 32
-// vector registers hold the NR x LV sums; with AVX2's 16 they would spill, and BLAS does better)
-bool fc_weight_grad_supports(int64_t L) {
-#if defined(__AVX512F__)
-  return L == 16 || L == 32 || L == 64 || L == 128 || L == 256;
-#else
-  return false;
-#endif
-}
+// whether fc_weight_grad has a kernel for L latent rows: L = 16, 32, 64, 128 or 256
+bool fc_weight_grad_supports(int64_t L) { return L == 16 || L == 32 || L == 64 || L == 128 || L == 256; }
 
 }  // namespace
 
