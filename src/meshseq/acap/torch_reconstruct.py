@@ -59,9 +59,9 @@ class TorchReconstructor(torch.nn.Module):
         self.n_vertices = reconstructor.topology.n_vertices
         op = reconstructor.rhs_operator.tocoo()
         index = torch.as_tensor(np.stack([op.row, op.col]), dtype=torch.int64)
-        self.register_buffer("rhs_operator", torch.sparse_coo_tensor(
-            index, torch.as_tensor(op.data, dtype=dtype), size=op.shape, check_invariants=True
-        ).coalesce().to(device))
+        with torch.sparse.check_sparse_tensor_invariants():  # explicitly (see model._csr)
+            rhs = torch.sparse_coo_tensor(index, torch.as_tensor(op.data, dtype=dtype), size=op.shape).coalesce()
+        self.register_buffer("rhs_operator", rhs.to(device))
         self.register_buffer("free", torch.as_tensor(reconstructor.free, device=device))
         labels = reconstructor.topology.component_labels
         self.register_buffer("labels", torch.as_tensor(labels, device=device))
