@@ -303,13 +303,14 @@ def test_two_learning_rates_train_as_set_and_resume_bit_for_bit(tmp_path, fc_lr)
     data = training_data(seq, feats)
     cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=3, log_every=1, lr=1e-3, fc_lr_fan_in=fan_in // 4,
                fc_lr=fc_lr)
-    one = train(data, tmp_path / "a", TrainConfig(iterations=6, **cfg), SMALL, progress=False, log=None)
-    train(data, tmp_path / "b", TrainConfig(iterations=3, **cfg), SMALL, progress=False, log=None)
-    two = train(data, tmp_path / "b", TrainConfig(iterations=6, **cfg), SMALL, resume=True, progress=False, log=None)
+    one = train(data, tmp_path / "a", TrainConfig(iterations=6, **cfg), SMALL, device="cpu", progress=False, log=None)
+    train(data, tmp_path / "b", TrainConfig(iterations=3, **cfg), SMALL, device="cpu", progress=False, log=None)
+    two = train(data, tmp_path / "b", TrainConfig(iterations=6, **cfg), SMALL,
+                device="cpu", resume=True, progress=False, log=None)
     for k, v in one["model"].state_dict().items():
         assert torch.equal(v, two["model"].state_dict()[k]), k
     plain = train(data, tmp_path / "c", TrainConfig(iterations=6, **(cfg | {"fc_lr": "none"})), SMALL,
-                  progress=False, log=None)
+                  device="cpu", progress=False, log=None)
     torch.manual_seed(0)
     init = small_model(seq).fc.weight.detach()  # what train() starts from (seed 0)
     moved = (one["model"].fc.weight.detach() - init).abs().mean()
@@ -498,7 +499,7 @@ def test_training_clips_gradients_and_resumes_the_clip_history_bit_for_bit(tmp_p
         after.append(float(T.grad_norm(parameters)))
 
     monkeypatch.setattr(T, "scale_gradients", spy)
-    one = train(data, tmp_path / "a", TrainConfig(iterations=16, **cfg), SMALL, progress=False, log=None)
+    one = train(data, tmp_path / "a", TrainConfig(iterations=16, **cfg), SMALL, device="cpu", progress=False, log=None)
     with open(tmp_path / "a" / "metrics.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     norms = [float(r["grad_norm"]) for r in rows]
@@ -507,14 +508,15 @@ def test_training_clips_gradients_and_resumes_the_clip_history_bit_for_bit(tmp_p
     expected = [0.5 * float(np.median(norms[:i])) for i in range(T.GRAD_CLIP_WARMUP, 16)]
     assert after == pytest.approx(expected, rel=1e-4)
     # the history of norms travels in the checkpoint: a resumed run clips as the whole one did
-    train(data, tmp_path / "b", TrainConfig(iterations=12, **cfg), SMALL, progress=False, log=None)
-    two = train(data, tmp_path / "b", TrainConfig(iterations=16, **cfg), SMALL, resume=True, progress=False,
+    train(data, tmp_path / "b", TrainConfig(iterations=12, **cfg), SMALL, device="cpu", progress=False, log=None)
+    two = train(data, tmp_path / "b", TrainConfig(iterations=16, **cfg), SMALL,
+                device="cpu", resume=True, progress=False,
                 log=None)
     for k, v in one["model"].state_dict().items():
         assert torch.equal(v, two["model"].state_dict()[k]), k
     # unclipped (the paper's recipe), the same seed ends elsewhere
     free = train(data, tmp_path / "c", TrainConfig(iterations=16, **(cfg | {"grad_clip": None})), SMALL,
-                 progress=False, log=None)
+                 device="cpu", progress=False, log=None)
     assert not torch.equal(free["model"].fc.weight, one["model"].fc.weight)
 
 
@@ -587,7 +589,7 @@ def test_ema_checkpoints_deliver_the_average_and_resume_bit_for_bit(tmp_path, mo
         real(average, parameters, decay)
 
     monkeypatch.setattr(T, "update_average", spy)
-    one = train(data, tmp_path / "a", TrainConfig(iterations=10, **cfg), SMALL, progress=False, log=None)
+    one = train(data, tmp_path / "a", TrainConfig(iterations=10, **cfg), SMALL, device="cpu", progress=False, log=None)
     monkeypatch.setattr(T, "update_average", real)
     assert [d for _, d in seen] == [T.average_decay(0.5, t) for t in range(1, 11)]
     expected = initial
@@ -605,8 +607,9 @@ def test_ema_checkpoints_deliver_the_average_and_resume_bit_for_bit(tmp_path, mo
     for k, v in final.net.state_dict().items():  # train() returns what the checkpoint delivers
         assert torch.equal(v, one["model"].state_dict()[k]), k
     # resume from iteration 6: the same average and the same training weights as the whole run
-    train(data, tmp_path / "b", TrainConfig(iterations=6, **cfg), SMALL, progress=False, log=None)
-    two = train(data, tmp_path / "b", TrainConfig(iterations=10, **cfg), SMALL, resume=True, progress=False, log=None)
+    train(data, tmp_path / "b", TrainConfig(iterations=6, **cfg), SMALL, device="cpu", progress=False, log=None)
+    two = train(data, tmp_path / "b", TrainConfig(iterations=10, **cfg), SMALL,
+                device="cpu", resume=True, progress=False, log=None)
     again = ckpt.load_latest(tmp_path / "b", with_state=True)
     for k, v in one["model"].state_dict().items():
         assert torch.equal(v, two["model"].state_dict()[k]), k
@@ -614,7 +617,7 @@ def test_ema_checkpoints_deliver_the_average_and_resume_bit_for_bit(tmp_path, mo
         assert torch.equal(raw[n], again.state_tensors[f"train.{n}"]), n
     # the average does not change training: a run without it ends at the training weights
     plain = train(data, tmp_path / "c", TrainConfig(iterations=10, **(cfg | {"ema_decay": None})), SMALL,
-                  progress=False, log=None)
+                  device="cpu", progress=False, log=None)
     for n, p in plain["model"].named_parameters():
         assert torch.equal(p.detach(), raw[n]), n
     assert not any(k.startswith("train.") for k in ckpt.load_latest(tmp_path / "c", with_state=True).state_tensors)

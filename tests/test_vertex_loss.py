@@ -138,17 +138,18 @@ def test_training_with_w_vertex_logs_it_and_resumes_bit_for_bit(limb, tmp_path):
     seq, feats = limb
     data = training_data(seq, feats)
     cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=3, log_every=1, w_vertex=1.0, vertex_frames=2)
-    one = train(data, tmp_path / "a", TrainConfig(iterations=6, **cfg), SMALL, progress=False, log=None)
+    one = train(data, tmp_path / "a", TrainConfig(iterations=6, **cfg), SMALL, device="cpu", progress=False, log=None)
     with open(tmp_path / "a" / "metrics.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == 6 and all(float(r["vertex"]) > 0 for r in rows)
-    train(data, tmp_path / "b", TrainConfig(iterations=3, **cfg), SMALL, progress=False, log=None)
-    two = train(data, tmp_path / "b", TrainConfig(iterations=6, **cfg), SMALL, resume=True, progress=False, log=None)
+    train(data, tmp_path / "b", TrainConfig(iterations=3, **cfg), SMALL, device="cpu", progress=False, log=None)
+    two = train(data, tmp_path / "b", TrainConfig(iterations=6, **cfg), SMALL,
+                device="cpu", resume=True, progress=False, log=None)
     for k, v in one["model"].state_dict().items():
         assert torch.equal(v, two["model"].state_dict()[k]), k
     # the term changes training
     plain = train(data, tmp_path / "c", TrainConfig(iterations=6, **(cfg | {"w_vertex": 0.0})), SMALL,
-                  progress=False, log=None)
+                  device="cpu", progress=False, log=None)
     assert any(not torch.equal(v, plain["model"].state_dict()[k]) for k, v in one["model"].state_dict().items())
 
 

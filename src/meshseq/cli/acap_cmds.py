@@ -246,11 +246,15 @@ def _print(values: dict, as_json: bool, title: str) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title=title, show_header=False)
+    table = Table(show_header=False)
     for key, value in values.items():
         if isinstance(value, float):
             text = f"{value:.3g}" if abs(value) < 1e-2 or abs(value) >= 1e4 else f"{value:.4g}"
         else:
             text = str(value)
         table.add_row(key, text)
-    Console().print(table)
+    console = Console()
+    # the title on a line of its own, never wrapped: it may hold a long path (a table's title is
+    # wrapped to the table's width, which cut the path in two)
+    console.print(title, soft_wrap=True, markup=False, highlight=False)
+    console.print(table)
