@@ -18,7 +18,8 @@ without (a revision without ``input_tanh`` is called with its own signature), ``
 ``fc_wtx`` (W^T h), and the window losses' ``frame_errors`` forward and backward with L_motion's
 steps on a roll-out's 32 frames of 2 x (windows / 2) chains (the frames and the truth, 233 MB,
 come from memory: a 96 MB read-only pass, not timed, before each of these calls, as in the
-training loop).
+training loop); the LSTM step's forward and backward (3 layers of 128) and the banked FC weight
+gradient over 62 pairs, where both builds have them.
 """
 
 from __future__ import annotations
@@ -103,6 +104,24 @@ def main() -> None:
     operations["frame_errors backward"] = lambda o: o.frame_errors_backward(ge, frames, truth,
                                                                           list(range(1, n_frames)))
     cold = {"frame_errors, steps", "frame_errors backward"}
+    # the LSTM step (3 layers of 128 at the batch's B chains) and the banked FC weight gradient
+    # (62 pairs of (B, 128) and (V x 9, B), as in a roll-out), where both builds have them
+    K, H = 3, 128
+    z, hs, cs = torch.randn(B, H, generator=g), torch.randn(K, B, H, generator=g), torch.randn(K, B, H, generator=g)
+    w_ih = [0.1 * torch.randn(4 * H, H, generator=g) for _ in range(K)]
+    w_hh = [0.1 * torch.randn(4 * H, H, generator=g) for _ in range(K)]
+    bsum = [torch.randn(4 * H, generator=g) for _ in range(K)]
+    t_ih, t_hh = [w.t().contiguous() for w in w_ih], [w.t().contiguous() for w in w_hh]
+    if all(hasattr(o, "lstm_forward") for o in builds.values()):
+        h_out, c_out, gates = torch.ops.meshseq.lstm_forward(z, hs, cs, t_ih, t_hh, bsum)
+        dh, dc = torch.randn(K, B, H, generator=g), torch.randn(K, B, H, generator=g)
+        operations["lstm step forward"] = lambda o: o.lstm_forward(z, hs, cs, t_ih, t_hh, bsum)
+        operations["lstm step backward"] = lambda o: o.lstm_backward(dh, dc, z, hs, cs, h_out, c_out, gates,
+                                                                     w_ih, w_hh)
+    if all(hasattr(o, "fc_weight_grad") for o in builds.values()):
+        left = torch.randn(62 * B, 128, generator=g)
+        rights = [torch.randn(V * 9, B, generator=g) for _ in range(62)]
+        operations["fc weight gradient (62 pairs)"] = lambda o: o.fc_weight_grad(left, rights)
     print(f"horse: {V} vertices, {B} windows, FC weight 128 x {V * 9}, {args.threads} threads; "
           f"{args.calls} alternated calls each; milliseconds, 10th percentile / median")
     names = list(builds)
