@@ -4,13 +4,19 @@
 #   2. benchmarks/train_speed.py --device cuda at the paper configuration (horse, 8 x 32),
 #      variants fast / bf16 / reference, with the profile and the scaling table;
 #   3. `meshseq train --device auto` on pcow (picks CUDA), then --resume to more iterations;
-#   4. the same under torchrun (one process, NCCL): the DistributedDataParallel path on CUDA.
+#   4. the same under torchrun (one process, NCCL): the DistributedDataParallel path on CUDA;
+#   5. with a third argument `suite`, first the whole test suite there (pytest-xdist, one worker a
+#      core, `-v` so that failures are named as they come, even if the time limit cuts the run),
+#      the files needing the viz, bodies or USD extras or Blender left out.
 #
-#   benchmarks/cuda_check.sh DATA_DIR OUT_DIR
+#   benchmarks/cuda_check.sh DATA_DIR OUT_DIR [suite]
 #
 # DATA_DIR holds horse-gallop.npz, pcow.npz and crane.npz (the team's ../shared/data); every
 # step's output goes to OUT_DIR/*.log and the benchmark's figures to OUT_DIR/speed.json.
-# Each step has its own time limit, so one slow step does not take the others with it.
+# Each step has its own time limit, so one slow step does not take the others with it. On the
+# `device` tool's H200 (2026-12-04): carry the data and wheels of libigl, cholespy, trimesh and cma
+# (its image lacks them; docs/training-speed.md, "GPU"), install them with pip --target, then
+# `pip install -e . --no-deps --no-build-isolation` for the suite's `meshseq` command.
 set -u
 data=${1:?usage: cuda_check.sh DATA_DIR OUT_DIR}
 out=${2:?usage: cuda_check.sh DATA_DIR OUT_DIR}
@@ -30,6 +36,12 @@ step() {  # step NAME SECONDS CMD...: run CMD with a time limit, its output in O
 }
 
 nvidia-smi -L
+if [ "${3:-}" = suite ]; then  # about 6 minutes on 16 cores; needs meshseq installed (pip install -e . --no-deps)
+    step suite 420 $py -m pytest -v -n auto -p no:cacheprovider --tb=line tests \
+        --ignore tests/test_render.py --ignore tests/test_viewer.py --ignore tests/test_export.py \
+        --ignore tests/test_bodies.py --ignore tests/test_formats.py --ignore tests/test_blender.py
+    grep -E "FAILED|ERROR" "$out/suite.log" | head -40
+fi
 $py -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda, torch.cuda.get_device_name())"
 step tests 120 $py -m pytest -q -rs tests/test_train.py -k cuda
 step speed 200 $py benchmarks/train_speed.py "$data/horse-gallop.npz" --device cuda --iterations 10 \

@@ -89,6 +89,11 @@ def copy_gbps(device, mib=256, repeat=5) -> float:
     return 2 * a.numel() * 4 / min(timed(lambda: b.copy_(a), device, repeat)) / 1e9
 
 
+def duration(seconds: float) -> str:
+    """``0.35 s`` or, below a tenth of a second (a GPU's floors), ``1.9 ms``."""
+    return f"{seconds:.2f} s" if seconds >= 0.1 else f"{seconds * 1e3:.1f} ms"
+
+
 def bytes_per_iteration(cfg: ModelConfig, rows: int, steps: int, weight_bytes: int = 4) -> dict:
     """Bytes an iteration must move between memory and the cores, by part (a floor, not a count).
 
@@ -312,7 +317,7 @@ def main() -> None:
             t_bytes = sum(nbytes.values()) / (bw * 1e9)
             print(f"[{impl}] {v:10s} {med:6.2f} {best:6.2f} {statistics.median(cpu):6.2f} {achieved:8.1f} "
                   f"{100 * achieved / peak:5.0f}% {med * peak:7.0f} {7000 * med / 3600:7.1f}h   "
-                  f"{t_flop:.2f} s, {t_bytes:.2f} s ({sum(nbytes.values()) / 1e9:.1f} GB: "
+                  f"{duration(t_flop)}, {duration(t_bytes)} ({sum(nbytes.values()) / 1e9:.1f} GB: "
                   + ", ".join(f"{k} {b / 1e9:.1f}" for k, b in nbytes.items()) + ")")
             results["variants"][f"{impl}/{v}"] = {
                 "seconds_per_iteration": med, "best": best, "times": wall, "cpu_times": cpu,
