@@ -510,8 +510,7 @@ def test_training_clips_gradients_and_resumes_the_clip_history_bit_for_bit(tmp_p
     # the history of norms travels in the checkpoint: a resumed run clips as the whole one did
     train(data, tmp_path / "b", TrainConfig(iterations=12, **cfg), SMALL, device="cpu", progress=False, log=None)
     two = train(data, tmp_path / "b", TrainConfig(iterations=16, **cfg), SMALL,
-                device="cpu", resume=True, progress=False,
-                log=None)
+                device="cpu", resume=True, progress=False, log=None)
     for k, v in one["model"].state_dict().items():
         assert torch.equal(v, two["model"].state_dict()[k]), k
     # unclipped (the paper's recipe), the same seed ends elsewhere
