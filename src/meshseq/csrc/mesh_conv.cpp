@@ -64,6 +64,29 @@ inline void own_and_ring(const float* a, Csr M, int64_t v, int C, int B, int b0,
   }
 }
 
+#if !defined(__AVX512F__)
+// Without AVX-512 a tile of 16 windows is two 8-float registers (simd.h), and a whole tile's ring
+// sums (2 C registers, 18 for ACAP's 9 channels) spill on AVX2's 16: a store and a reload per
+// neighbour and spilled channel, in the sums' dependency chains. Summing the ring by halves of 8
+// windows keeps each half's C sums in registers (the neighbours' rows are read twice, from the L1
+// cache); each lane's sum is the same as with the whole tile (the same bits).
+template <>
+inline void own_and_ring<v16>(const float* a, Csr M, int64_t v, int C, int B, int b0, v16* own, v16* ring) {
+  const int64_t stride = int64_t(C) * B;
+  for (int c = 0; c < C; ++c) own[c] = load<v16>(a + v * stride + c * B + b0);
+  for (int h = 0; h < 16; h += 8) {
+    v8 half[CMAX];
+    for (int c = 0; c < C; ++c) half[c] = v8{};
+    for (int64_t k = M.rowptr[v]; k < M.rowptr[v + 1]; ++k) {
+      const v8 w = splat<v8>(M.weight[k]);
+      const float* au = a + M.col[k] * stride + b0 + h;
+      for (int c = 0; c < C; ++c) half[c] += w * load<v8>(au + c * B);
+    }
+    for (int c = 0; c < C; ++c) (h ? ring[c].hi : ring[c].lo) = half[c];
+  }
+}
+#endif
+
 // T: a tile of W windows
 // CI, CO: the channel counts when known at compile time (0: at run time, ci and co); BT: the number
 // of windows when known (a training batch of 16 chains: one tile; 0: at run time, b_rt)
@@ -78,9 +101,15 @@ void forward_tiles(const float* X, float* Y, const float* Ws, const float* Wr, c
     for (int64_t v = v0; v < v1; ++v) {
       for (int b0 = 0; b0 < B; b0 += W) {
         own_and_ring(X, A, v, Ci, B, b0, xv, ax);
+        // the self and ring sums as two chains of multiply-adds (`acc += ws * x + wr * a`, as this
+        // was, compiled to a multiply, a multiply-add and an add per channel; likewise gx below)
         for (int o = 0; o < Co; ++o) {
-          T acc = splat<T>(bias[v * bias_stride + o]);
-          for (int c = 0; c < Ci; ++c) acc += Ws[o * Ci + c] * xv[c] + Wr[o * Ci + c] * ax[c];
+          T acc = splat<T>(bias[v * bias_stride + o]), acc_ring = T{};
+          for (int c = 0; c < Ci; ++c) {
+            acc += Ws[o * Ci + c] * xv[c];
+            acc_ring += Wr[o * Ci + c] * ax[c];
+          }
+          acc += acc_ring;
           if (act) acc = tanh_rational(acc);
           if (R) acc += load<T>(R + v * ys + o * B + b0);
           store(Y + v * ys + o * B + b0, acc);
@@ -140,8 +169,12 @@ void backward_tiles(const float* G, const float* X, float* GX, const float* Ws, 
             T gv[CMAX], atg[CMAX];
             own_and_ring(G, At, v, Co, B, b0, gv, atg);
             for (int c = 0; c < Ci; ++c) {
-              T s = T{};
-              for (int o = 0; o < Co; ++o) s += Ws[o * Ci + c] * gv[o] + Wr[o * Ci + c] * atg[o];
+              T s = T{}, s_ring = T{};
+              for (int o = 0; o < Co; ++o) {
+                s += Ws[o * Ci + c] * gv[o];
+                s_ring += Wr[o * Ci + c] * atg[o];
+              }
+              s += s_ring;
               if (input_tanh) {
                 const T xc = load<T>(X + v * xs + c * B + b0);
                 s *= 1.0f - xc * xc;
