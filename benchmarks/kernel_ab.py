@@ -4,14 +4,15 @@ Builds the C++ kernels as they are at ``--against REV`` as a second extension (t
 package copied as ``meshseq_rev`` by ``revision.py``, its operators in the ``meshseq_rev``
 namespace, so both builds load into one process), then times the two builds' calls alternately on the horse's mesh (8431
 vertices, 9 channels, 16 windows, the FC weight 128 x 75879) and prints, per operation, the 10th
-percentile and the median of each in milliseconds and whether the outputs have the same bits.
+percentile and the median of each in milliseconds, whether the outputs have the same bits, and
+the median over the alternated pairs of this checkout's time over the revision's (``ratio``).
 
 Why this way: this machine's speed drifts by 20-50% from one minute to the next, so two
 separately measured runs cannot show a 5% lever; alternating A and B call by call in one
 process, and reading the 10th percentile (the median moves with the drift much more), can.
 Whole training iterations are compared the same way by ``iteration_ab.py``.
 
-    python benchmarks/kernel_ab.py --against HEAD~3 [--threads 2] [--calls 150] [--windows 16]
+    python benchmarks/kernel_ab.py --against HEAD~3 [--threads 2] [--calls 150] [--windows 16] [--only conv]
 
 Operations: conv forward with tanh and without, conv backward with the tanh derivative and
 without (a revision without ``input_tanh`` is called with its own signature), ``fc_wx`` (W x),
@@ -64,6 +65,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--calls", type=int, default=150, help="alternated calls per build and operation")
     ap.add_argument("--windows", type=int, default=16)
+    ap.add_argument("--only", default="", help="time only the operations whose name contains this (e.g. conv)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     kernels.keep_freed_memory()
@@ -125,8 +127,10 @@ def main() -> None:
     print(f"horse: {V} vertices, {B} windows, FC weight 128 x {V * 9}, {args.threads} threads; "
           f"{args.calls} alternated calls each; milliseconds, 10th percentile / median")
     names = list(builds)
-    print(f"{'operation':30s} {names[0]:>22s} {names[1]:>22s}   same bits")
+    print(f"{'operation':30s} {names[0]:>22s} {names[1]:>22s}   same bits   ratio")
     for label, op in operations.items():
+        if args.only not in label:
+            continue
         outs = [op(builds[n]) for n in names]  # warm-up, and the outputs to compare
         flat = [[o] if isinstance(o, torch.Tensor) else list(o) for o in outs]
         same = all(torch.equal(a, b) for a, b in zip(*flat))
@@ -139,7 +143,8 @@ def main() -> None:
                 op(builds[n])
                 times[n].append(time.perf_counter() - t0)
         cells = [f"{np.percentile(times[n], 10) * 1e3:9.3f} / {np.median(times[n]) * 1e3:8.3f}" for n in names]
-        print(f"{label:30s} {cells[0]:>22s} {cells[1]:>22s}   {'yes' if same else 'no'}")
+        ratio = np.median(np.array(times[names[0]]) / np.array(times[names[1]]))  # per alternated pair
+        print(f"{label:30s} {cells[0]:>22s} {cells[1]:>22s}   {'yes' if same else 'no':9s} {ratio:5.3f}")
 
 
 if __name__ == "__main__":
