@@ -68,21 +68,17 @@ inline void own_and_ring(const float* a, Csr M, int64_t v, int C, int B, int b0,
 // Without AVX-512 a tile of 16 windows is two 8-float registers (simd.h), and a whole tile's ring
 // sums (2 C registers, 18 for ACAP's 9 channels) spill on AVX2's 16: a store and a reload per
 // neighbour and spilled channel, in the sums' dependency chains. Summing the ring by halves of 8
-// windows keeps each half's C sums in registers (the neighbours' rows are read twice, from the L1
-// cache); each lane's sum is the same as with the whole tile (the same bits).
+// windows (the whole-tile form above on each 8-float half) keeps each half's C sums in registers;
+// each lane's sum is the same as with the whole tile (the same bits).
 template <>
 inline void own_and_ring<v16>(const float* a, Csr M, int64_t v, int C, int B, int b0, v16* own, v16* ring) {
-  const int64_t stride = int64_t(C) * B;
-  for (int c = 0; c < C; ++c) own[c] = load<v16>(a + v * stride + c * B + b0);
+  v8 own_half[CMAX], ring_half[CMAX];
   for (int h = 0; h < 16; h += 8) {
-    v8 half[CMAX];
-    for (int c = 0; c < C; ++c) half[c] = v8{};
-    for (int64_t k = M.rowptr[v]; k < M.rowptr[v + 1]; ++k) {
-      const v8 w = splat<v8>(M.weight[k]);
-      const float* au = a + M.col[k] * stride + b0 + h;
-      for (int c = 0; c < C; ++c) half[c] += w * load<v8>(au + c * B);
+    own_and_ring(a, M, v, C, B, b0 + h, own_half, ring_half);
+    for (int c = 0; c < C; ++c) {
+      (h ? own[c].hi : own[c].lo) = own_half[c];
+      (h ? ring[c].hi : ring[c].lo) = ring_half[c];
     }
-    for (int c = 0; c < C; ++c) (h ? ring[c].hi : ring[c].lo) = half[c];
   }
 }
 #endif
