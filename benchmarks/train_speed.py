@@ -11,6 +11,9 @@ and prints:
   practical limit of this machine);
 * the 1-ring mean by sparse matrix vs padded gather (forward + backward), which decides the
   default ``--conv``, and the fast path's ``embedding_bag`` ring mean (forward + transpose);
+* the cores' multiply-add rate with vectors in registers and fed from the L1 cache
+  (``core_limits.py``): the units' peak, which the matmul and the kernels are measured against
+  when the VM's memory path, not its arithmetic, is what changed from one day to the next;
 * a large copy's memory bandwidth (GB/s) measured in the same run, and the bytes an iteration
   must move (the FC weight read 4 times per step, the activations saved for the backward pass,
   the banked FC inputs), as time floors next to the FLOP floor: which limit binds;
@@ -39,6 +42,8 @@ import gc
 import json
 import os
 import statistics
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -54,6 +59,8 @@ from meshseq.kernels import MeshConvFused, keep_freed_memory, ring_mean
 from meshseq.model import BDLSTM, ModelConfig, NeighborMean, count_step_flops
 from meshseq.train import (TrainConfig, WindowLoss, autocast, freeze_setup_objects, fused_adam, gather_frames,
                            resolve_device)
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # core_limits.py beside this script
 
 DEFAULT = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "horse-gallop.npz"
 
@@ -87,6 +94,26 @@ def copy_gbps(device, mib=256, repeat=5) -> float:
     b = torch.empty_like(a)
     b.copy_(a)
     return 2 * a.numel() * 4 / min(timed(lambda: b.copy_(a), device, repeat)) / 1e9
+
+
+def core_rates(device, matmul: float) -> dict:
+    """The CPU cores' multiply-add rate in registers and fed from L1 (``core_limits.py``), printed
+    beside the matmul: on a shared VM the matmul moves by 3x from day to day, these tell whether the
+    units or the path that feeds them changed. Empty on a GPU or without a C compiler."""
+    if device.type != "cpu":
+        return {}
+    try:
+        import core_limits
+        threads = torch.get_num_threads()
+        rates = {"registers": core_limits.fma_gflops(threads),
+                 "from_l1": core_limits.fma_gflops(threads, from_l1=True)}
+    except (RuntimeError, OSError, subprocess.CalledProcessError) as e:
+        print(f"cores' multiply-add rate: not measured ({e})")
+        return {}
+    print(f"cores' multiply-adds, {threads} threads, {core_limits.vector_lanes()}-float vectors: "
+          f"{rates['registers']:.1f} GFLOP/s in registers, {rates['from_l1']:.1f} fed from L1 "
+          f"(the matmul reaches {100 * matmul / rates['registers']:.0f}% of the first)")
+    return rates
 
 
 def duration(seconds: float) -> str:
@@ -275,13 +302,14 @@ def main() -> None:
     bw = copy_gbps(device)
     print(f"float32 matmul 4096^3: {peak:.1f} GFLOP/s (this machine's practical limit)")
     print(f"memory bandwidth (256 MiB copy, read + write): {bw:.1f} GB/s")
+    cores = core_rates(device, peak)
     ring = ring_benchmark(topo, device, rows=2 * args.batch)
     print(f"ring mean and fused layer, forward+backward on (V, 9, {2 * args.batch}): "
           + ", ".join(f"{k} {v:.2f} ms" for k, v in ring.items()))
 
     steps, rows = args.window - 1, 2 * args.batch
     results = {"device": str(device), "threads": torch.get_num_threads(), "matmul_gflops": peak,
-               "copy_gbps": bw, "ring_ms": ring, "extract_s": t_extract, "variants": {}}
+               "copy_gbps": bw, "core_gflops": cores, "ring_ms": ring, "extract_s": t_extract, "variants": {}}
     impls = ("sparse", "gather") if args.conv == "both" else (args.conv,)
     for impl in impls:
         cfg = ModelConfig(n_vertices=seq.n_vertices, variant="bd", conv_impl=impl)
