@@ -78,13 +78,14 @@ def _compile() -> ctypes.CDLL:
         cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
         if cc is None:
             raise RuntimeError("no C compiler (cc) on PATH")
-        build = Path(tempfile.mkdtemp(prefix="meshseq-core-limits-"))
-        (build / "probe.c").write_text(SOURCE)
-        # -ffp-contract=fast: x * m + c as one fused multiply-add instruction
-        subprocess.run([cc, "-O2", "-march=native", "-ffp-contract=fast", "-shared", "-fPIC",
-                        str(build / "probe.c"), "-o", str(build / "probe.so")], check=True,
-                       capture_output=True)
-        lib = ctypes.CDLL(str(build / "probe.so"))
+        with tempfile.TemporaryDirectory(prefix="meshseq-core-limits-") as folder:
+            build = Path(folder)
+            (build / "probe.c").write_text(SOURCE)
+            # -ffp-contract=fast: x * m + c as one fused multiply-add instruction
+            subprocess.run([cc, "-O2", "-march=native", "-ffp-contract=fast", "-shared", "-fPIC",
+                            str(build / "probe.c"), "-o", str(build / "probe.so")], check=True,
+                           capture_output=True)
+            lib = ctypes.CDLL(str(build / "probe.so"))  # stays mapped once the folder is gone
         lib.fma_chains.argtypes = (ctypes.c_long, ctypes.c_int)
         lib.fma_chains.restype = ctypes.c_float
         lib.lanes.restype = ctypes.c_int
