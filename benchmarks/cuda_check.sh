@@ -14,8 +14,8 @@
 # DATA_DIR holds horse-gallop.npz, pcow.npz and crane.npz (the team's ../shared/data); every
 # step's output goes to OUT_DIR/*.log and the benchmark's figures to OUT_DIR/speed.json.
 # Each step has its own time limit, so one slow step does not take the others with it. On the
-# `device` tool's H200 (2026-12-04): carry the data and wheels of libigl, cholespy, trimesh and cma
-# (its image lacks them; docs/training-speed.md, "GPU"), install them with pip --target, then
+# `device` tool's H200: carry the data and wheels of libigl, cholespy, trimesh and cma
+# (its image lacks them; docs/performance.md), install them with pip --target, then
 # `pip install -e . --no-deps --no-build-isolation` for the suite's `meshseq` command.
 set -u
 data=${1:?usage: cuda_check.sh DATA_DIR OUT_DIR}
@@ -46,11 +46,13 @@ $py -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cu
 step tests 120 $py -m pytest -q -rs tests/test_train.py -k cuda
 step speed 200 $py benchmarks/train_speed.py "$data/horse-gallop.npz" --device cuda --iterations 10 \
     --variants fast,bf16,reference --profile --scaling --json "$out/speed.json"
+printf 'eval_every = 100\ncheckpoint_every = 100\n' > "$run/every100.toml"
+printf 'eval_every = 50\ncheckpoint_every = 50\n' > "$run/every50.toml"
 step train 80 $py -m meshseq train "$data/pcow.npz" --out "$run/pcow" --device auto --iterations 200 \
-    --eval-every 100 --checkpoint-every 100 --no-progress
+    --config "$run/every100.toml" --no-progress
 step resume 50 $py -m meshseq train "$data/pcow.npz" --out "$run/pcow" --device auto --iterations 300 \
-    --eval-every 100 --checkpoint-every 100 --no-progress --resume
+    --config "$run/every100.toml" --no-progress --resume
 step torchrun 80 torchrun --standalone --nproc_per_node 1 -m meshseq train "$data/pcow.npz" --out "$run/ddp" \
-    --device cuda --iterations 100 --eval-every 50 --checkpoint-every 50 --no-progress
+    --device cuda --iterations 100 --config "$run/every50.toml" --no-progress
 cp "$run/pcow/metrics.csv" "$out/pcow-metrics.csv" 2>/dev/null
 rm -rf "$run"

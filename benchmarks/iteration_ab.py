@@ -10,8 +10,8 @@ mean of the paired differences with its standard error.
 Why this way: this machine's speed drifts by 20-50% from one minute to the next, so two runs
 measured apart cannot show a 5% lever; alternated in one process, each pair sees the same moment.
 And why many pairs: on this 2-core VM the pairs' differences scatter by about 0.1 s, so 16 pairs
-leave a standard error of about 25 ms, as large as most levers left (docs/training-speed.md,
-"2026-12-03, tenth session"); 40 pairs bring it to about 15 ms. A lever is shown when the mean
+leave a standard error of about 25 ms, as large as most levers left (docs/performance.md,
+"Measuring a change"); 40 pairs bring it to about 15 ms. A lever is shown when the mean
 difference is several standard errors from 0.
 
     python benchmarks/iteration_ab.py --against HEAD~3 [--pairs 40] [--threads 2] [--batch 8]

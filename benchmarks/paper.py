@@ -12,8 +12,9 @@ runs already in ``--out``), evaluate it on the held-out 20% (``meshseq evaluate`
 - completion: ours, CMA-ES and linear interpolation on held-out gaps, and sample diversity;
 - Fig. 3: the feature-change curves (PNG per data set),
 
-as Markdown to ``--results`` (default docs/results.md) with the iterations, the times and the
-machine. Example (what docs/results.md records):
+one record per data set (and ``--tag``) in ``--records`` (docs/results/NAME.json), and from all
+records the Markdown ``--results`` (docs/results.md) and the results table of README.md;
+``--markdown-only`` rewrites both from the records without training. Example:
 
     python benchmarks/paper.py --data pcow --iterations 600 --variants bd,uni,std-bd,no-kl
     python benchmarks/paper.py --data bodies --iterations 1500 --variants bd
@@ -27,11 +28,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 from pathlib import Path
 
-import torch
 
 from meshseq.errors import MeshseqError
 
@@ -41,7 +40,7 @@ SHARED = Path(os.environ.get("MESHSEQ_SHARED_DATA", ROOT.parent / "shared" / "da
 #: for 3 given frames and a horizon of 15; its frames 25-48 repeat 1-24 anyway (see the data README).
 HOLDOUT = {"horse-gallop": 0.4}
 #: The body set of ``--data bodies`` (``meshseq make-bodies`` arguments): 4 subjects x 4 motions,
-#: 120 frames at 1,000 vertices; the same set as the recipe study (docs/recipe_study.md).
+#: 120 frames at 1,000 vertices; the same set as the recipe study (docs/method.md).
 BODY_SET = ["--subjects", "female_fit,male_heavy,female_old,male_slim",
             "--motions", "punch,shake_arms,jumping_jacks,walk", "--frames", "120", "--vertices", "1000"]
 GAPS = "10,20"  # completion gaps (issue 12's targets)
@@ -181,55 +180,20 @@ def combine_results(per_sequence: list[dict]) -> dict:
     return out
 
 
-def target_rows(result: dict) -> list[str]:
-    """Issue 12's prediction targets at horizons 10 and 15: ours against the best baseline, raw
-    and rigidly aligned, in data units x 1e-4 and per bounding-box diagonal."""
-    lines = ["Targets (prediction, h = 10 and 15): ours against the best of "
-             + ", ".join(b for b in BASELINES if b in result["errors"]) + "; ratio < 1 = ours better:", "",
-             "| given, horizon | ours | best baseline | ratio | rigid: ours | best | ratio | ours per diagonal |",
-             "|---|---|---|---|---|---|---|---|"]
-    for u in ("u1", "u3"):
-        for h in ("10", "15"):
-            cells = []
-            for key in ("errors", "errors_aligned"):
-                errs = result[key]
-                base = {b: errs[b][u][h] for b in BASELINES if b in errs}
-                best = min(base, key=base.get)
-                ours = errs["ours"][u][h]
-                cells += [f"{ours:.1f}", f"{base[best]:.1f} ({best})", f"{ours / base[best]:.2f}"]
-            per_diag = result.get("errors_per_diagonal", {}).get("ours", {}).get(u, {}).get(h)
-            cells.append("-" if per_diag is None else f"{per_diag:.4f}")
-            lines.append(f"| {u[1]}, {h} | " + " | ".join(cells) + " |")
-    return lines + [""]
-
-
-#: Issue 12's data sets (the body set is ``bodies``) and where ours must be <= 0.7x the best baseline.
-TARGET_SETS = ("horse-gallop", "crane", "pcow", "bodies")
-STRICT_SETS = ("horse-gallop", "bodies")
+#: The data sets of the paper's protocol here (the body set is ``bodies``), in the order shown.
+TARGET_SETS = ("bodies", "horse-gallop", "crane", "pcow")
 PAPER_ITERATIONS = 7000
 MOTION_FRAMES = 50
-
-
-def diverged_variants(summary: dict) -> dict[str, int]:
-    """Variants of a record whose training diverged, with the iteration where it stopped."""
-    out = {}
-    for v, run in summary.get("runs", {}).items():
-        if "diverged" in run:
-            m = re.search(r"at iteration (\d+)", run["diverged"])
-            out[v] = int(m.group(1)) if m else -1
-    return out
-
-
-def _seed_cell(variant: str, means: list[dict], avg: float) -> str:
-    n_div = sum(m[variant] == float("inf") for m in means)
-    return f"{variant} diverged in {n_div} of {len(means)} seeds" if n_div else f"{variant} {avg:.1f}"
+CELLS = [(u, h) for u in ("u1", "u3") for h in ("5", "10", "15")]
+README_BEGIN = "<!-- results: made by `python benchmarks/paper.py --markdown-only` from docs/results/*.json -->"
+README_END = "<!-- end of results -->"
 
 
 def recipe_text(options: dict | None, window_kept: bool = False) -> str:
     """How a record's training options differ from today's default recipe, in a few words.
 
     Options a record lacks were added after it was made: it trained with their legacy values
-    (``train.LEGACY_TRAIN_DEFAULTS``). Records without options predate the motion term.
+    (``LEGACY_TRAIN_DEFAULTS``). Records without options predate the motion term.
     ``window_kept``: the default's window rule (``window_fit``) would have kept the record's
     window, so a record made without the rule counts as made with it."""
     from meshseq.train import LEGACY_TRAIN_DEFAULTS, RECIPES
@@ -252,213 +216,225 @@ def window_kept(heldout: list[int], trained: int | None, window: int = 32, batch
     return fitted_window([heldout[0]], window, batch, 1) == (trained or min(window, heldout[0]))
 
 
-def target_status(summaries: dict) -> list[str]:
-    """The table "where the targets stand", computed from the records: one row per target and
-    data set, with the measured figure and met / not met (never edited by hand)."""
-    rows = []
+def run_recipe(summary: dict, variant: str = "bd") -> str:
+    """``recipe_text`` of one variant's run in a record."""
+    run, res = summary["runs"].get(variant, {}), summary["results"].get(variant)
+    if res is None:
+        return recipe_text(run.get("options"))
+    return recipe_text(run.get("options"), window_kept(res["range"], run.get("window")))
 
-    def add(target: str, name: str, figure: str, met: bool | None, its: str) -> None:
-        mark = "not run" if met is None else ("**met**" if met else "not met")
-        rows.append(f"| {target} | {name} | {its} | {figure} | {mark} |")
 
-    names = []  # each target set, then its tagged records (a recipe variant, a longer run ...)
+def shipped_records(summaries: dict) -> dict[str, str]:
+    """``{data set: record name}``: per data set, the record of bd with baselines trained with
+    today's default recipe (the checkpoint of its last iteration, not one chosen on a validation
+    block), the one with the most iterations."""
+    out = {}
     for base in TARGET_SETS:
-        names += [base] + sorted(n for n in summaries if n.startswith(base + "-"))
-    for name in names:
-        bd = summaries.get(name, {}).get("results", {}).get("bd")
-        div = diverged_variants(summaries.get(name, {}))
-        if "bd" in div:
-            add("all", name, f"training diverged at iteration {div['bd']}", False, "-")
-            continue
-        if not bd or len(bd["errors"]) < 2:
-            if name in TARGET_SETS:
-                tagged = any(n.startswith(name + "-") for n in summaries)
-                add("all", name, "no untagged record (the tagged records below)" if tagged
-                    else "no record at the paper's configuration", None, "-")
-            continue  # tagged records without baselines: Table 1, below
-        run = summaries[name]["runs"].get("bd", {})
-        its = f"{bd['iteration']} / {PAPER_ITERATIONS}; {recipe_text(run.get('options'), window_kept(bd['range'], run.get('window')))}"
-        if run.get("validation"):
-            its += (f"; the checkpoint with the lowest error on a validation block ({run['validation']:g} of the "
-                    f"training frames), of {run['last_iteration']}")
-        ratios = []
-        for key in ("errors", "errors_aligned"):
-            errs = bd[key]
-            for u in ("u1", "u3"):
-                for h in ("10", "15"):
-                    best = min(errs[b][u][h] for b in BASELINES if b in errs)
-                    ratios.append(errs["ours"][u][h] / best)
-        worse = sum(r >= 1 for r in ratios)
-        add("prediction h10/h15, u1/u3, raw and rigid: ours below the best baseline", name,
-            f"{len(ratios) - worse} of {len(ratios)} cells below; ratios {min(ratios):.2f}-{max(ratios):.2f} "
-            f"(mean {sum(ratios) / len(ratios):.2f})",
-            worse == 0, its)
-        if name in STRICT_SETS or any(name.startswith(b + "-") for b in STRICT_SETS):
-            add("prediction: ours <= 0.7x the best baseline", name, f"largest ratio {max(ratios):.2f}",
-                max(ratios) <= 0.7, its)
-        comp = bd.get("completion", {})
-        for gap in ("10", "20"):
-            if gap not in comp:
-                add(f"completion gap {gap}: below both linear interpolations, diversity > 0", name,
-                    f"not evaluable: the held-out part {bd['range']} has fewer than {int(gap) + 2} frames"
-                    if bd["range"][1] - bd["range"][0] < int(gap) + 2 else "not evaluated", None, its)
+        best = None
+        for name, summ in summaries.items():
+            bd = summ["results"].get("bd")
+            if (name != base and not name.startswith(base + "-")) or not bd or len(bd["errors"]) < 2:
                 continue
-            c = _with_joins(comp[gap])
-            lin = min(c["linear"], c.get("linear_vertices", float("inf")))
-            join = "ours" if "ours" in c else "stitch"  # records made before the corrected join
-            note = "" if join == "ours" else " (the paper's stitch: evaluated before the corrected join)"
-            add(f"completion gap {gap}: below both linear interpolations, diversity > 0", name,
-                f"{join} {c[join]:.1f} / linear {lin:.1f} = {c[join] / lin:.2f}; diversity "
-                f"{c.get('diversity', 0):.1f}{note}", c[join] < lin and c.get("diversity", 0) > 0, its)
-        fc = bd["feature_change"]
-        level = sum(fc["ours"][:MOTION_FRAMES]) / len(fc["ours"][:MOTION_FRAMES]) / fc["ground_truth"]
-        add(f"motion level of {MOTION_FRAMES} generated frames within 30% of the truth's", name,
-            f"{level:.2f} of the truth's", abs(level - 1) <= 0.3, its)
-    table1 = {n: s for n, s in summaries.items() if n.split("-")[0] == "bodies"
-              and len(s["results"]) + len(diverged_variants(s)) > 1}
-    if not table1:
-        add("Table 1: bd better than std-bd, uni and no-kl at equal budgets", "bodies", "no ablation record", None, "-")
-    seeds: dict[str, list[dict]] = {}
-    for name, summ in table1.items():
-        res = summ["results"]
-        mean = {v: sum(r["errors"]["ours"][u][h] for u in ("u1", "u3") for h in ("5", "10", "15")) / 6
-                for v, r in res.items()}
-        div = diverged_variants(summ)
-        mean.update({v: float("inf") for v in div})  # a variant that cannot be trained is beaten
-        others = [v for v in ("std-bd", "uni", "no-kl") if v in mean]
-        its = ", ".join(sorted({str(r["iteration"]) for r in res.values()}))
-        add("Table 1: bd better than std-bd, uni and no-kl at equal budgets (mean of the 6 cells)", name,
-            "; ".join(f"{v} diverged at iteration {div[v]}" if v in div else f"{v} {mean[v]:.1f}"
-                      for v in ["bd"] + others),
-            "bd" in mean and len(others) == 3 and all(mean["bd"] < mean[v] for v in others), its)
-        seeds.setdefault(re.sub(r"-s\d+$", "", name), []).append(mean)
-    for family, means in seeds.items():  # one seed per record (NAME, NAME-s1, NAME-s2 ...)
-        if len(means) < 2:
-            continue
-        variants = [v for v in ("bd", "std-bd", "uni", "no-kl") if all(v in m for m in means)]
-        avg = {v: sum(m[v] for m in means) / len(means) for v in variants}
-        wins = {v: sum(m["bd"] < m[v] for m in means) for v in variants if v != "bd"}
-        add(f"Table 1 over {len(means)} seeds (mean over seeds of the 6-cell means; seeds where bd is lower; "
-            "met: bd lower on the mean and in most seeds)",
-            f"{family}, {family}-s*", "; ".join(_seed_cell(v, means, avg[v]) + (f" ({wins[v]}/{len(means)})" if v in wins else "")
-                                           for v in variants),
-            # met: lower on the mean over seeds and in most seeds (a mean alone can hide one lucky seed)
-            "bd" in avg and len(wins) == 3 and all(avg["bd"] < avg[v] and 2 * wins[v] > len(means) for v in wins), "")
-    return ["## Where issue 12's targets stand", "",
-            "Computed from the records below by `benchmarks/paper.py` (ratios: ours over the best of "
-            + ", ".join(BASELINES) + f"; motion level: mean feature change of the first {MOTION_FRAMES} "
-            "generated frames over the ground truth's, Fig. 3; the motion term is the default recipe's "
-            "since this session, so earlier runs lack it). Why the unmet ones are not met, and what would "
-            "meet them: \"Where issue 12's targets stand, why, and what would meet them\" in the recipe "
-            "study at the end.", "",
-            "| target | data | iterations; motion term | measured | status |", "|---|---|---|---|---|", *rows, ""]
+            if summ["runs"]["bd"].get("validation") or run_recipe(summ) != "default recipe":
+                continue
+            if best is None or bd["iteration"] > summaries[best]["results"]["bd"]["iteration"]:
+                best = name
+        if best:
+            out[base] = best
+    return out
 
 
-def _options_text(runs: dict) -> str:
-    """The training options the runs stored (records made before they were kept: nothing)."""
-    opts = next((r["options"] for r in runs.values() if "options" in r), None)
-    if not opts:
-        return ""
-    return " (" + ", ".join(f"{k} {v}" for k, v in opts.items()) + ")"
+def prediction_ratios(result: dict) -> list[float]:
+    """Ours over the best baseline at h10 and h15 after 1 and 3 given frames, raw then rigid (8)."""
+    ratios = []
+    for key in ("errors", "errors_aligned"):
+        errs = result[key]
+        for u in ("u1", "u3"):
+            for h in ("10", "15"):
+                ratios.append(errs["ours"][u][h] / min(errs[b][u][h] for b in BASELINES if b in errs))
+    return ratios
 
 
-def _with_joins(completion: dict) -> dict:
-    """A gap's completion figures with ``ours`` (the corrected join) and ``stitch`` (the paper's)
-    as named; records made before the corrected join have only ``ours``, which was the stitch."""
-    if "stitch" in completion:
-        return completion
-    return {k: v for k, v in completion.items() if k != "ours"} | {"stitch": completion["ours"]}
+def motion_level(result: dict) -> float:
+    """Mean feature change of the first ``MOTION_FRAMES`` generated frames over the truth's (Fig. 3)."""
+    fc = result["feature_change"]
+    head = fc["ours"][:MOTION_FRAMES]
+    return sum(head) / len(head) / fc["ground_truth"]
+
+
+def _completion_cell(result: dict, gap: str) -> str:
+    comp = result.get("completion", {})
+    if gap not in comp:
+        return "does not fit"
+    c = comp[gap]
+    lin = min(c["linear"], c.get("linear_vertices", float("inf")))
+    return f"{c['ours'] / lin:.2f}"
+
+
+def shipped_table(summaries: dict, shipped: dict[str, str]) -> list[str]:
+    """The shipped recipe on every data set: one row each (the README's table too)."""
+    lines = ["| data | iterations | prediction: ours / best baseline (8 cells) | cells below 1 | "
+             "completion gap 10 / 20: ours / linear | motion level |", "|---|---|---|---|---|---|"]
+    for base, name in shipped.items():
+        bd = summaries[name]["results"]["bd"]
+        r = prediction_ratios(bd)
+        lines.append(f"| {base} | {bd['iteration']} of {PAPER_ITERATIONS} | {min(r):.2f}-{max(r):.2f} "
+                     f"(mean {sum(r) / len(r):.2f}) | {sum(x < 1 for x in r)} of {len(r)} | "
+                     f"{_completion_cell(bd, '10')} / {_completion_cell(bd, '20')} | {motion_level(bd):.2f} |")
+    return lines
 
 
 def _row(values: dict, keys) -> str:
     return " | ".join(f"{values[u][h]:.1f}" for u, h in keys)
 
 
-def write_markdown(summaries: dict, device: str, path: Path) -> None:
-    """docs/results.md from ``{data set: summary}`` (see ``main``: results, runs, config, argv)."""
-    keys = [(u, h) for u in ("u1", "u3") for h in ("5", "10", "15")]
-    head = " | ".join(f"{u[1]} given, h={h}" for u, h in keys)
+def _mean6(errors: dict) -> float:
+    return sum(errors[u][h] for u, h in CELLS) / len(CELLS)
+
+
+def ablation_records(summaries: dict) -> list[str]:
+    """The body-set ablation records (all four variants) trained with today's default recipe: the
+    family (NAME, NAME-s1 ...) with the most seeds, NAME first."""
+    families: dict[str, list[str]] = {}
+    for name, summ in summaries.items():
+        if name.startswith("bodies-") and len(summ["runs"]) == 4 and run_recipe(summ) == "default recipe":
+            families.setdefault(re.sub(r"-s\d+$", "", name), []).append(name)
+    if not families:
+        return []
+    return sorted(max(families.values(), key=len), key=lambda n: (len(n), n))
+
+
+def ablation_table(summaries: dict) -> list[str]:
+    """Table 1 from the body-set ablation records trained with today's default recipe (one per
+    seed: NAME, NAME-s1 ...), the 6 cells averaged over the seeds."""
+    names = ablation_records(summaries)
+    if not names:
+        return ["No ablation record with today's default recipe."]
+    head = " | ".join(f"{u[1]} given, h={h}" for u, h in CELLS)
+    its = summaries[names[0]]["config"]["iterations"]
+    lines = [f"Records {', '.join(f'`{n}.json`' for n in names)} ({len(names)} seeds, {its} iterations each, "
+             "the body set, ours only); errors x 1e-4, each cell the mean over the seeds:", "",
+             f"| variant | {head} | mean | " + " | ".join(f"mean, seed of `{n}`" for n in names) + " |",
+             "|---" * (len(CELLS) + 2 + len(names)) + "|"]
+    for variant in ("bd", "std-bd", "uni", "no-kl"):
+        per_seed = [summaries[n]["results"].get(variant) for n in names]
+        if any(r is None for r in per_seed):
+            continue
+        cells = {u: {h: sum(r["errors"]["ours"][u][h] for r in per_seed) / len(per_seed) for _, h in CELLS}
+                 for u in ("u1", "u3")}
+        lines.append(f"| {variant} | {_row(cells, CELLS)} | {_mean6(cells):.1f} | "
+                     + " | ".join(f"{_mean6(r['errors']['ours']):.1f}" for r in per_seed) + " |")
+    return lines
+
+
+def dataset_section(base: str, name: str, summ: dict) -> list[str]:
+    """Table 2, completion and Fig. 3 of one shipped record."""
+    bd, run = summ["results"]["bd"], summ["runs"]["bd"]
+    head = " | ".join(f"{u[1]} given, h={h}" for u, h in CELLS)
+    seqs = sorted(bd.get("sequences", {}))
+    lines = [f"### {base}", "",
+             f"Record `docs/results/{name}.json`: `python benchmarks/paper.py {' '.join(summ['argv'])}`; "
+             f"{bd['iteration']} iterations, {summ['config']['batch']} windows x {run.get('window', summ['config']['window'])} "
+             f"frames, latent {summ['config']['latent']}, {run['seconds'] / 3600:.1f} h of training; held-out frames "
+             f"{bd['range']}" + (f" of each of its {len(seqs)} sequences" if seqs else "") + ".", "",
+             f"| method | {head} |", "|---" * (len(CELLS) + 1) + "|"]
+    for m, per_u in bd["errors"].items():
+        lines.append(f"| {m} | {_row(per_u, CELLS)} |")
+    lines += ["", "After rigid (Kabsch) alignment:", "", f"| method | {head} |", "|---" * (len(CELLS) + 1) + "|"]
+    for m, per_u in bd["errors_aligned"].items():
+        lines.append(f"| {m} | {_row(per_u, CELLS)} |")
+    lines.append("")
+    comp = bd.get("completion", {})
+    if comp:
+        lines += ["| completion gap | ours | stitch (paper) | CMA-ES | linear (ACAP) | linear (vertices) | diversity |",
+                  "|---|---|---|---|---|---|---|"]
+        for gap, c in comp.items():
+            lines.append(f"| {gap} | {c['ours']:.1f} | {c.get('stitch', float('nan')):.1f} | {c['cma']:.1f} | "
+                         f"{c['linear']:.1f} | {c.get('linear_vertices', float('nan')):.1f} | {c.get('diversity', 0):.1f} |")
+        lines.append("")
+    lines += [f"Fig. 3: motion level {motion_level(bd):.2f} of the truth's over the first {MOTION_FRAMES} generated "
+              f"frames. ![feature change {name}](img/feature_change_{name}.png)", ""]
+    return lines
+
+
+def record_list(summaries: dict, shipped: dict[str, str]) -> list[str]:
+    """Every record: what it is and how its recipe differs from today's default."""
+    lines = ["| record | command (`python benchmarks/paper.py ...`) | recipe of bd | used above |", "|---|---|---|---|"]
+    shown, ablation = set(shipped.values()), set(ablation_records(summaries))
+    for name, summ in summaries.items():
+        variants = ", ".join(summ["runs"])
+        args = " ".join(a for a in summ.get("argv", []) if a not in ("--quiet",))
+        lines.append(f"| `{name}.json` ({variants}) | `{args}` | {run_recipe(summ)} | "
+                     + ("shipped recipe" if name in shown else "ablations" if name in ablation else "") + " |")
+    return lines
+
+
+def write_markdown(summaries: dict, device: str, path: Path, readme: Path | None = None) -> None:
+    """docs/results.md from ``{data set: summary}`` (see ``main``: results, runs, config, argv), and
+    the table between ``README_BEGIN`` and ``README_END`` in ``readme``."""
+    shipped = shipped_records(summaries)
+    table = shipped_table(summaries, shipped)
     lines = [
-        "# Results: the paper's tables on this repository's data",
+        "# Results",
         "",
-        f"Made by `benchmarks/paper.py` on {platform.node() or 'this machine'} ({platform.machine()}, "
-        f"{os.cpu_count()} cores, no GPU used: device {device}, torch {torch.__version__}). The paper trains "
-        "7000 iterations of 8 windows x 32 frames (about 8 hours on a Tesla K40c); the runs here are far "
-        "shorter (CPU), as each section says. Errors: mean per-vertex distance in the data's units x 1e-4 on "
-        "the held-out end of each sequence, averaged over every start with enough frames; translation "
-        "removed (centroids), and in the second table also the best rotation. Each section names its "
-        "recipe; the tables measured earlier with the paper's literal recipe are in "
-        "[results-paper-recipe.md](results-paper-recipe.md).",
+        "Everything on this page is computed from the records in `docs/results/` (one JSON per data set "
+        "and tag, written by `benchmarks/paper.py` after it trains and evaluates) by",
+        "",
+        "    python benchmarks/paper.py --markdown-only",
+        "",
+        "which also rewrites the results table of README.md. Nothing here is typed by hand. Errors: mean "
+        "per-vertex distance in the data's units x 1e-4 on the held-out end of each sequence (the last 20%; "
+        "horse-gallop 40%), averaged over every start with enough frames, translation removed (centroids); "
+        "\"rigid\" also removes the best rotation. Baselines: zero velocity, linear extrapolation of the ACAP "
+        "features, and the latent extrapolation of a mesh VAE (standing in for Tan et al. 2018). "
+        "Completion: in-between error against linear interpolation of the ACAP features and of the "
+        "vertices (the better of the two). Motion level: the feature change of the generated frames over "
+        "the truth's (Fig. 3 of the paper; 1 = moves as much as the truth). The paper trains 7000 "
+        "iterations of 8 windows x 32 frames; the runs here stop earlier where the CPU budget ran out, as "
+        "each row says. Data: [docs/guide.md](guide.md#data); the body set is `meshseq make-bodies "
+        + " ".join(BODY_SET) + "` (16 sequences of 120 frames at 1,000 vertices).",
+        "",
+        "## The shipped recipe on each data set",
+        "",
+        "Per data set the longest record trained with today's default recipe (`meshseq train` as shipped):",
+        "",
+        *table,
+        "",
+        "Ratios below 1: ours is better than every baseline (h10 and h15, 1 and 3 given frames, raw and "
+        "rigid). Completion below 1: better than both linear interpolations. Why horse-gallop, crane and "
+        "pcow differ from the body set: [method.md](method.md#what-the-data-can-teach).",
         "",
     ]
-    lines += target_status(summaries)
-    for name, summ in summaries.items():
-        per_variant, runs, cfg = summ["results"], summ["runs"], summ["config"]
-        if not per_variant:  # every variant diverged: the command and why, no tables
-            lines += [f"## {name}", "", f"Command: `python benchmarks/paper.py {' '.join(summ['argv'])}`. Recipe: "
-                      f"{summ.get('recipe', 'default')}.", ""]
-            lines += [f"{v}: {r['diverged']}" for v, r in runs.items() if "diverged" in r] + [""]
-            continue
-        its = ", ".join(f"{v} {r['iteration']}" for v, r in per_variant.items())
-        seqs = sorted(per_variant[next(iter(per_variant))].get("sequences", {}))
-        lines += [f"## {name}", "",
-                  f"Command: `python benchmarks/paper.py {' '.join(summ['argv'])}`. Recipe: "
-                  f"{summ.get('recipe', 'default')}{_options_text(runs)}. Iterations: {its}; "
-                  f"{cfg['batch']} windows x {runs[next(iter(runs))].get('window', cfg['window'])} frames, "
-                  f"stride {cfg['stride']}, latent {cfg['latent']}; "
-                  f"held-out frames {per_variant[next(iter(per_variant))]['range']}"
-                  + (f" of each of its {len(seqs)} sequences ({', '.join(seqs)})" if seqs else "") + ".", ""]
-        bd = per_variant.get("bd")
-        bd = bd if bd and len(bd["errors"]) > 1 else None  # None: ours only (--no-baselines)
-        if bd:
-            lines += target_rows(bd)
-            lines += ["Table 2 (methods; ours = shared-weight BD-LSTM):", "",
-                      f"| method | {head} |", "|---" * (len(keys) + 1) + "|"]
-            for m, per_u in bd["errors"].items():
-                lines.append(f"| {m} | {_row(per_u, keys)} |")
-            lines += ["", "Same, after rigid (Kabsch) alignment:", "",
-                      f"| method | {head} |", "|---" * (len(keys) + 1) + "|"]
-            for m, per_u in bd["errors_aligned"].items():
-                lines.append(f"| {m} | {_row(per_u, keys)} |")
-            lines.append("")
-        lines += ["Table 1 (ablations, ours):", "", f"| variant | {head} | train s |",
-                  "|---" * (len(keys) + 2) + "|"]
-        for variant, r in per_variant.items():
-            lines.append(f"| {variant} | {_row(r['errors']['ours'], keys)} | {runs[variant]['seconds']:.0f} |")
-        for variant, run in runs.items():
-            if "diverged" in run:
-                lines.append(f"| {variant} | {' | '.join(['diverged'] * len(keys))} | - |")
-        lines.append("")
-        for variant, run in runs.items():
-            if "diverged" in run:
-                lines += [f"{variant}: {run['diverged']}", ""]
-        if bd and "completion" in bd:
-            lines += ["Completion (in-between error x 1e-4; ours: the chains corrected and crossfaded, "
-                      "stitch: the same chains joined as in the paper; diversity: mean distance between 4 "
-                      "random-state samples):",
-                      "", "| gap | ours | stitch (paper) | CMA-ES | linear (ACAP) | linear (vertices) | diversity |",
-                      "|---|---|---|---|---|---|---|"]
-            for gap, r in bd["completion"].items():
-                r = _with_joins(r)
-                cell = {k: (f"{r[k]:.1f}" if k in r else "-") for k in ("ours", "stitch", "linear_vertices")}
-                lines.append(f"| {gap} | {cell['ours']} | {cell['stitch']} | {r['cma']:.1f} | {r['linear']:.1f} | "
-                             f"{cell['linear_vertices']} | {r.get('diversity', 0):.1f} |")
-            lines.append("")
-        if bd:
-            fc = bd["feature_change"]
-            tail = {m: sum(v[-10:]) / len(v[-10:]) for m, v in fc.items() if m != "ground_truth"}
-            lines += [f"Fig. 3 (feature change after 2 given frames): ground truth level {fc['ground_truth']:.4f}; "
-                      "mean of the last 10 generated steps: " + ", ".join(f"{m} {v:.4f}" for m, v in tail.items()),
-                      "", f"![feature change {name}](img/feature_change_{name}.png)", ""]
-    notes = sorted({n for s in summaries.values() for r in s["results"].values() for n in r.get("notes", [])})
+    for base, name in shipped.items():
+        lines += dataset_section(base, name, summaries[name])
+    lines += ["## Ablations (the paper's Table 1)", "",
+              "bd: the shared-weight bidirectional LSTM (ours); std-bd: two LSTMs, one per direction; uni: "
+              "the forward chain only, no L_bd; no-kl: bd without L_KL.", "",
+              *ablation_table(summaries), "",
+              "## Records", "",
+              "Which figure comes from which record. Records whose recipe differs from today's default are "
+              "kept as the evidence behind the decisions in [method.md](method.md); the tables above use "
+              "only the rows marked \"shipped recipe\" and \"ablations\".", "",
+              *record_list(summaries, shipped), ""]
+    notes = sorted({n for name in shipped.values() for n in summaries[name]["results"]["bd"].get("notes", [])})
     lines += [f"Note: {n}." for n in notes]
-    study = path.parent / "recipe_study.md"  # the recipe study (benchmarks/recipe_study.py), kept beside
-    if study.is_file():
-        lines += ["", study.read_text().rstrip()]
     from meshseq.io import atomic_output
 
     with atomic_output(path, force=True) as tmp:
-        Path(tmp).write_text("\n".join(lines) + "\n")
+        Path(tmp).write_text("\n".join(lines).rstrip() + "\n")
+    if readme is not None and readme.is_file():
+        update_readme(readme, table)
+
+
+def update_readme(readme: Path, table: list[str]) -> None:
+    """Replace the lines between ``README_BEGIN`` and ``README_END`` in ``readme`` by ``table``."""
+    text = readme.read_text()
+    if README_BEGIN not in text or README_END not in text:
+        return
+    head, rest = text.split(README_BEGIN, 1)
+    tail = rest.split(README_END, 1)[1]
+    readme.write_text(head + README_BEGIN + "\n" + "\n".join(table) + "\n" + README_END + tail)
+
 
 
 def main() -> None:
@@ -487,6 +463,8 @@ def main() -> None:
     ap.add_argument("--cma-seconds", type=float, default=30.0)
     ap.add_argument("--out", default=str(ROOT / "runs" / "paper"))
     ap.add_argument("--results", default=str(ROOT / "docs" / "results.md"))
+    ap.add_argument("--readme", default=str(ROOT / "README.md"),
+                    help="the README whose results table (between its markers) is rewritten")
     ap.add_argument("--records", default=str(ROOT / "docs" / "results"),
                     help="one summary JSON per data set; the Markdown is made from every record here")
     ap.add_argument("--markdown-only", action="store_true",
@@ -498,7 +476,7 @@ def main() -> None:
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
     args = ap.parse_args()
     if args.markdown_only:
-        write_markdown(collect(Path(args.records)), args.device, Path(args.results))
+        write_markdown(collect(Path(args.records)), args.device, Path(args.results), Path(args.readme))
         print(f"wrote {args.results}")
         return
     args.argv = [a for a in os.sys.argv[1:]]
@@ -547,7 +525,7 @@ def _record(args, out: Path, key: str, results: dict, runs: dict) -> None:
                          "argv": args.argv, "recipe": args.recipe, "device": args.device}, indent=None)
     (out / key / "summary.json").write_text(summary)
     _write_text(Path(args.records) / f"{key}.json", summary)
-    write_markdown(collect(Path(args.records)), args.device, Path(args.results))
+    write_markdown(collect(Path(args.records)), args.device, Path(args.results), Path(args.readme))
 
 
 def _write_text(path: Path, text: str) -> None:
