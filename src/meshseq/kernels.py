@@ -82,7 +82,8 @@ def cpu_kernels_available() -> bool:
             from torch.utils.cpp_extension import get_default_build_root, load
 
             py = f"py{sys.version_info[0]}{sys.version_info[1]}"
-            build = Path(get_default_build_root()) / f"meshseq_kernels-{py}-torch{torch.__version__}-{cpu_signature()}"
+            root = os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()  # as torch's own builds
+            build = Path(root) / f"meshseq_kernels-{py}-torch{torch.__version__}-{cpu_signature()}"
             build.mkdir(parents=True, exist_ok=True)
             clear_stale_lock(build)
             import hashlib
