@@ -1,14 +1,17 @@
-"""meshseq commands of the feature layer: ``info``, ``features``, ``roundtrip``."""
+"""meshseq commands of the feature layer: ``info``, ``features``, ``roundtrip``.
+
+numpy and the library are imported inside the commands, so that ``meshseq --help`` stays fast.
+"""
 
 from __future__ import annotations
 
 import argparse
 import time
 
-import numpy as np
-
 from meshseq.errors import MeshseqError
-from meshseq.io import json_text
+
+#: meshseq.acap.CONSISTENCY_MODES, kept here so that --help does not import torch (a test checks they agree)
+CONSISTENCY_MODES = ("temporal", "spatial", "greedy")
 
 
 def register(sub) -> None:
@@ -52,8 +55,6 @@ def register(sub) -> None:
 
 
 def _feature_options(p: argparse.ArgumentParser) -> None:
-    from meshseq.acap import CONSISTENCY_MODES
-
     p.add_argument("--consistency", choices=CONSISTENCY_MODES, default="temporal",
                    help="rotation consistency: 'temporal' (default; logs continuous in time with the "
                    "fewest spurious 2 pi jumps), 'spatial' (per-frame BFS of the reference code) or "
@@ -75,6 +76,8 @@ def _load(args):
 
 
 def _reference(seq, k: int) -> np.ndarray:
+    import numpy as np
+
     if not -seq.n_frames <= k < seq.n_frames:
         raise MeshseqError(f"--reference-frame {k} is out of range: {seq.source or seq.name} has "
                            f"{seq.n_frames} frames")
@@ -121,6 +124,8 @@ def _sequences(args) -> list:
 
 
 def cmd_info(args) -> int:
+    from meshseq.io import json_text
+
     infos = []
     for seq in _sequences(args):
         info = describe(seq)
@@ -142,9 +147,11 @@ def cmd_info(args) -> int:
 def cmd_features(args) -> int:
     from pathlib import Path
 
+    import numpy as np
+
     from meshseq.acap import extract
     from meshseq.acap.features import component_offsets
-    from meshseq.io import atomic_output, check_output
+    from meshseq.io import atomic_output, check_output, json_text
     from meshseq.mesh import Topology
 
     out = Path(args.output)
@@ -185,6 +192,8 @@ def cmd_features(args) -> int:
 def roundtrip_report(seq, *, consistency="temporal", exact=False, reference_frame=0,
                      normal_row=True, rigid=False) -> dict:
     """Extract, reconstruct, compare; the ``roundtrip`` command's numbers (see its help)."""
+    import numpy as np
+
     from meshseq.acap import Reconstructor, extract, features_to_gradients
     from meshseq.acap.features import component_offsets
     from meshseq.align import per_vertex_error
@@ -241,6 +250,8 @@ def cmd_roundtrip(args) -> int:
 
 def _print(values: dict, as_json: bool, title: str) -> None:
     if as_json:
+        from meshseq.io import json_text
+
         print(json_text(values))
         return
     from rich.console import Console

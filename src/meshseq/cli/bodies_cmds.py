@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import time
 
+#: meshseq.data.motions.MOTIONS, kept here so that --help does not import numpy (a test checks they agree)
+MOTIONS = ("walk", "jumping_jacks", "punch", "shake_arms", "squat", "wave", "bend")
+
 
 def register(sub) -> None:
     """Add ``make-bodies`` to the ``meshseq`` parser's subparsers."""
-    from meshseq.data.motions import MOTIONS
-
     p = sub.add_parser(
         "make-bodies", help="generate human motion data (Anny bodies x motions) into a Dyna-style .h5",
         description="Pose Anny bodies (subjects of different build, sex and age) through built-in "

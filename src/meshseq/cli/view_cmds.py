@@ -10,7 +10,6 @@ import time
 from pathlib import Path
 
 from meshseq.errors import MeshseqError
-from meshseq.io import check_output
 
 SEQ_HELP = ("a mesh sequence: folder of OBJ/PLY/OFF frames, .npz, FILE.h5:SEQUENCE, .glb/.gltf, "
             ".usd/.usda/.usdc, or an .mdd/.pc2 point cache (BASE.obj:CACHE.pc2)")
@@ -119,6 +118,7 @@ def _fps(args, seq) -> float:
 
 def cmd_render(args: argparse.Namespace) -> int:
     from meshseq import render
+    from meshseq.io import check_output
 
     suffix = render.check_output_suffix(args.output, render.IMAGE_SUFFIXES + render.ANIMATION_SUFFIXES)
     check_output(args.output, force=args.force)  # before loading or rendering anything
@@ -177,6 +177,8 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from meshseq.io import check_output
+
     out = args.output
     suffix = Path(out).suffix.lower()
     is_folder = out.endswith(("/", os.sep)) or suffix == "" or Path(out).is_dir()
