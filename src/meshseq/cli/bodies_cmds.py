@@ -28,6 +28,8 @@ def register(sub) -> None:
     p.add_argument("--vertices", type=int, default=3000, metavar="V",
                    help="vertices of the decimated template (default 3000); 0 for the full 13,348-vertex skin")
     p.add_argument("--seed", type=int, default=0, help="seed of the subjects and performances (default 0)")
+    p.add_argument("--tempo", choices=("steady", "varied"), default="steady",
+                   help="steady (default), or varied: holds, slow-downs to a stop and speed-ups in every sequence")
     p.add_argument("-o", "--output", required=True, metavar="OUT.h5", help="output file (.h5)")
     p.add_argument("--force", action="store_true", help="overwrite OUT.h5 if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -57,7 +59,7 @@ def cmd_make_bodies(args) -> int:
         body_model()
         path = make_body_set(args.output, [s.name for s in subjects] if not args.subjects.strip().isdigit()
                              else len(subjects), motions, args.frames, vertices, seed=args.seed, fps=args.fps,
-                             force=args.force)
+                             force=args.force, tempo=args.tempo)
     else:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -72,7 +74,7 @@ def cmd_make_bodies(args) -> int:
 
             path = make_body_set(args.output, [s.name for s in subjects] if not args.subjects.strip().isdigit()
                                  else len(subjects), motions, args.frames, vertices, seed=args.seed,
-                                 fps=args.fps, force=args.force, on_sequence=done)
+                                 fps=args.fps, force=args.force, on_sequence=done, tempo=args.tempo)
     elapsed = time.perf_counter() - start
     print(f"wrote {path}: {total} sequences ({len(subjects)} subjects x {len(motions)} motions) x "
           f"{args.frames} frames in {elapsed:.1f} s; read one as {path}:{subjects[0].name}_{motions[0]}")

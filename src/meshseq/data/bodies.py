@@ -37,7 +37,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from meshseq.data.motions import MOTIONS, RIG_BONES, MotionParams, RigAxes, canonical_motion, motion_curves
+from meshseq.data.motions import (MOTIONS, RIG_BONES, MotionParams, RigAxes, canonical_motion, motion_curves,
+                                  varied_tempo)
 from meshseq.errors import MeshseqError
 from meshseq.io import MeshSequence, atomic_output, check_output
 
@@ -59,6 +60,8 @@ NAMED_SUBJECTS: dict[str, dict[str, float]] = {
 
 DEFAULT_FPS = 30.0
 DEFAULT_VERTICES = 3000
+#: ``make-bodies --tempo``: a steady tempo, or holds, slow-downs and speed-ups.
+TEMPOS = ("steady", "varied")
 #: Frames Anny poses in one batch.
 POSE_CHUNK = 64
 #: Width (metres) of the smooth switch between the two feet as the floor contact.
@@ -364,11 +367,14 @@ def sequence_rng(seed: int, subject_index: int, motion: str) -> np.random.Genera
 
 
 def generate(subject: Subject, motion: str, frames: int, *, params: MotionParams | None = None,
-             vertices: int | None = DEFAULT_VERTICES, fps: float = DEFAULT_FPS) -> MeshSequence:
+             vertices: int | None = DEFAULT_VERTICES, fps: float = DEFAULT_FPS,
+             times: np.ndarray | None = None) -> MeshSequence:
     """One sequence: ``subject`` doing ``motion`` for ``frames`` frames.
 
     Args:
         params: the performance's speed / amplitude / phase (default: the motion's own).
+        times: ``(frames,)`` the motion's time at each frame (a time warp:
+            :func:`meshseq.data.motions.varied_tempo`); default a steady tempo.
         vertices: the template's vertex count, or None (or at least the skin's 13,348) for the
             full-resolution skin.
     Returns:
@@ -380,7 +386,7 @@ def generate(subject: Subject, motion: str, frames: int, *, params: MotionParams
     if frames < 2:
         raise MeshseqError(f"--frames {frames}: need at least 2 frames")
     body = body_model()
-    m = motion_curves(key, frames, fps=fps, params=params, rig=body.rig_for(subject.phenotype))
+    m = motion_curves(key, frames, fps=fps, params=params, rig=body.rig_for(subject.phenotype), times=times)
     v = body.pose(subject.phenotype, m.rotations, frames)
     v = ground(v, body.soles, hop=m.hop, contact=m.contact if m.travels else None)
     faces = body.faces
@@ -393,14 +399,16 @@ def generate(subject: Subject, motion: str, frames: int, *, params: MotionParams
 def make_body_set(path: str | os.PathLike, subjects: int | str | Sequence[str] = 3,
                   motions: str | Sequence[str] = ("walk", "jumping_jacks", "punch"), frames: int = 64,
                   vertices: int | None = DEFAULT_VERTICES, seed: int = 0, fps: float = DEFAULT_FPS,
-                  force: bool = False,
+                  force: bool = False, tempo: str = "steady",
                   on_sequence: Callable[[str], None] | None = None) -> Path:
     """Write a Dyna-style HDF5 set of every subject doing every motion; returns its path.
 
     Layout: dataset ``faces`` ``(F, 3)`` int32 shared by all; one dataset ``SUBJECT_MOTION`` of
     vertices ``(V, 3, T)`` float32 per sequence, with attributes ``subject``, ``motion``,
     ``phenotype`` (JSON), ``speed``, ``amplitude``, ``phase``, ``fps``; file attributes say how it
-    was made. Each performance's speed, amplitude and phase are drawn from ``seed``, the subject
+    was made. ``tempo`` ``"varied"`` plays every performance with holds, slow-downs to a stop and
+    speed-ups (:func:`meshseq.data.motions.varied_tempo`, drawn from its own stream, so the
+    speed, amplitude and phase stay those of the steady set). Each performance's speed, amplitude and phase are drawn from ``seed``, the subject
     and the motion, so the same arguments give the same file. Written atomically;
     ``on_sequence(name)`` is called after each sequence (progress).
     """
@@ -411,6 +419,8 @@ def make_body_set(path: str | os.PathLike, subjects: int | str | Sequence[str] =
     mots = resolve_motions(motions)
     if int(frames) < 2:
         raise MeshseqError(f"--frames {frames}: need at least 2 frames")
+    if tempo not in TEMPOS:
+        raise MeshseqError(f"--tempo {tempo!r}: expected one of {', '.join(TEMPOS)}")
     body = body_model()
     full = vertices is None or int(vertices) >= body.n_vertices
     with atomic_output(target, force=force) as tmp:
@@ -419,8 +429,10 @@ def make_body_set(path: str | os.PathLike, subjects: int | str | Sequence[str] =
             for si, subject in enumerate(subs):
                 for motion in mots:
                     params = MotionParams.sample(sequence_rng(seed, si, motion))
+                    times = None if tempo == "steady" else varied_tempo(
+                        int(frames), fps, np.random.default_rng([int(seed), si, MOTIONS.index(motion), 1]))
                     seq = generate(subject, motion, int(frames), params=params,
-                                   vertices=None if full else int(vertices), fps=fps)
+                                   vertices=None if full else int(vertices), fps=fps, times=times)
                     if faces is None:
                         faces = seq.faces
                         h5.create_dataset("faces", data=faces.astype(np.int32))
@@ -428,7 +440,9 @@ def make_body_set(path: str | os.PathLike, subjects: int | str | Sequence[str] =
                         seq.vertices.transpose(1, 2, 0), dtype=np.float32))
                     ds.attrs.update(subject=subject.name, motion=motion, phenotype=subject.to_json(),
                                     speed=params.speed, amplitude=params.amplitude, phase=params.phase,
-                                    fps=fps)
+                                    fps=fps, tempo=tempo)
+                    if times is not None:
+                        ds.attrs["times"] = times
                     if on_sequence is not None:
                         on_sequence(seq.name)
             h5.attrs.update(generator="meshseq make-bodies (Anny body model)", seed=int(seed), fps=fps,

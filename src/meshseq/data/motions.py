@@ -79,6 +79,33 @@ class Motion:
     params: MotionParams = field(default_factory=MotionParams)
 
 
+#: Tempo levels of :func:`varied_tempo` (factors on the motion's own speed): holds, slow, steady, fast.
+TEMPO_LEVELS = (0.0, 0.0, 0.25, 0.5, 1.0, 1.0, 1.5)
+
+
+def varied_tempo(n_frames: int, fps: float, rng: np.random.Generator, segment: tuple[int, int] = (12, 36),
+                 ramp: tuple[int, int] = (4, 14)) -> np.ndarray:
+    """A time warp with holds, slow-downs to a stop and speed-ups: ``(n_frames,)`` times in seconds.
+
+    The tempo (the motion's speed factor) is piecewise constant on segments of ``segment`` frames,
+    each at a level drawn from ``TEMPO_LEVELS`` (a hold is level 0), and moves to the next level
+    over a linear ramp of ``ramp`` frames, so a motion slows to a stop, stays still, and starts
+    again. ``times[k]`` is the tempo summed over frames ``0..k-1`` over ``fps`` (``times[0] = 0``).
+    """
+    tempo = np.empty(n_frames)
+    level, k = float(rng.choice(TEMPO_LEVELS[2:])), 0  # start in motion
+    while k < n_frames:
+        length = int(rng.integers(segment[0], segment[1] + 1))
+        tempo[k:k + length] = level
+        k += length
+        nxt = float(rng.choice(TEMPO_LEVELS))
+        r = int(rng.integers(ramp[0], ramp[1] + 1))
+        tempo[k:k + r] = np.linspace(level, nxt, r + 2)[1:-1][:max(0, min(r, n_frames - k))]
+        k += r
+        level = nxt
+    return np.concatenate([[0.0], np.cumsum(tempo[:-1])]) / float(fps)
+
+
 def canonical_motion(name: str) -> str | None:
     """The built-in motion called ``name`` (case and aliases tolerated), or None."""
     key = name.strip().lower().replace(" ", "_")
@@ -286,18 +313,22 @@ def walk_legs(phi: np.ndarray, rig: "RigAxes", amplitude: float = 1.0):
 
 
 def motion_curves(name: str, n_frames: int, fps: float = 30.0, params: MotionParams | None = None,
-                  rig: "RigAxes | None" = None) -> Motion:
+                  rig: "RigAxes | None" = None, times: np.ndarray | None = None) -> Motion:
     """Joint rotations of motion ``name`` over ``n_frames`` frames at ``fps``.
 
     Args:
         rig: hinge axes of the body's rest skeleton (:meth:`RigAxes.from_heads`); default
             those of Anny's default body.
+        times: ``(n_frames,)`` the motion's time in seconds at each frame (a time warp, e.g.
+            :func:`varied_tempo`); default ``k / fps``, a steady tempo.
     """
     key = canonical_motion(name)
     if key is None:
         raise ValueError(f"unknown motion {name!r} (known: {', '.join(MOTIONS)})")
     p = params or MotionParams()
-    t = np.arange(n_frames, dtype=np.float64) / float(fps)
+    t = np.arange(n_frames, dtype=np.float64) / float(fps) if times is None else np.asarray(times, np.float64)
+    if t.shape != (n_frames,):
+        raise ValueError(f"times: expected shape ({n_frames},), got {t.shape}")
     phi = 2.0 * np.pi * BASE_FREQUENCY[key] * p.speed * t + p.phase
     rig = rig or RigAxes.default()
     left, right = _Side(n_frames, rig), _Side(n_frames, rig)

@@ -156,6 +156,10 @@ def fitted_window(lengths, window: int, batch: int, stride: int = 1) -> int:
     return window
 
 
+#: Tempo levels of ``WindowSampler.sample_at_tempos`` (0 holds the pose).
+TEMPO_LEVELS = (0.0, 0.25, 0.5, 1.0, 1.0, 1.5)
+
+
 class WindowSampler:
     """Draws batches of training windows from several data sets stacked along frames.
 
@@ -218,6 +222,46 @@ class WindowSampler:
         after = np.minimum(before + 1, (stop - 1)[:, None])
         offset = self.offsets[self.starts[picks, 0]][:, None]
         return offset + before, offset + after, pos - before
+
+
+    def sample_at_tempos(self, rng: np.random.Generator, batch: int,
+                         share: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``batch`` windows, a ``share`` of them played with a changing tempo (holds, slow-downs
+        to a stop, speed-ups: a temporal-resampling augmentation that shows the chains paces,
+        and changes of pace, the data may lack).
+
+        A window's tempo (frames of the data per frame of the window, at ``stride``) moves from
+        level ``a`` to level ``b`` (each from ``TEMPO_LEVELS``; 0 holds the pose) over a linear
+        ramp at a random place, and is shrunk where the window would not fit in its segment; the
+        other windows keep tempo 1 (their frames exactly). Returns ``(before, after, weight)`` as
+        ``sample_at_speeds`` does, each ``(batch, window)``.
+        """
+        picks = rng.integers(0, len(self.starts), size=batch)
+        steps = self.window - 1
+        tempo = np.ones((batch, steps))
+        varied = rng.uniform(size=batch) < share
+        m = int(varied.sum())
+        if m:
+            a, b = (np.asarray(TEMPO_LEVELS)[rng.integers(0, len(TEMPO_LEVELS), size=(2, m))])
+            start = rng.uniform(-0.25, 1.0, size=m) * steps
+            length = rng.uniform(0.0, 0.5, size=m) * steps + 1e-9
+            k = np.arange(steps)[None, :] + 0.5
+            ramp = np.clip((k - start[:, None]) / length[:, None], 0.0, 1.0)
+            tempo[varied] = a[:, None] + (b - a)[:, None] * ramp
+        first, stop = self.segment_bounds[picks, 0], self.segment_bounds[picks, 1]
+        room = (stop - 1 - first).astype(np.float64)
+        span = tempo.sum(1) * self.stride
+        tempo *= np.minimum(1.0, room / np.maximum(span, 1e-12))[:, None]
+        span = tempo.sum(1) * self.stride
+        own = self.starts[picks, 1].astype(np.float64)  # exact windows start where they were drawn
+        start = np.where(varied, first + rng.uniform(0.0, 1.0, size=batch) * (room - span), own)
+        pos = start[:, None] + self.stride * np.concatenate([np.zeros((batch, 1)), np.cumsum(tempo, 1)], 1)
+        pos = np.clip(pos, first[:, None], (stop - 1)[:, None])
+        before = np.floor(pos + 1e-9).astype(np.int64)
+        weight = np.clip(pos - before, 0.0, 1.0)
+        after = np.minimum(before + 1, (stop - 1)[:, None])
+        offset = self.offsets[self.starts[picks, 0]][:, None]
+        return offset + before, offset + after, weight
 
 
 def heldout_rows(splits: list[Split], window: int, stride: int = 1, per_set: int = 4) -> np.ndarray:
