@@ -2,8 +2,9 @@
 
 Not in the paper (its losses are all in the scaled feature space). The feature loss weighs every
 vertex and channel alike, but the vertex error the evaluation reports does not: on horse-gallop a
-4 x better feature fit gave no better vertex error (docs/method.md, "A vertex term"), because a few outlier vertices set the S channels' range and because coherent
-rotation errors over a limb add up along it. This term reconstructs generated and true frames
+4 x better feature fit gave no better vertex error (docs/method.md, "A vertex term"), because a
+few outlier vertices set the S channels' range and because coherent rotation errors over a limb
+add up along it. This term reconstructs generated and true frames
 with the differentiable torch reconstruction (the same linear solve as evaluation) and compares
 the vertices::
 

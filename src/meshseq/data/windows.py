@@ -133,8 +133,8 @@ def fitted_window(lengths, window: int, batch: int, stride: int = 1) -> int:
 
     With fewer different windows than a batch, every batch repeats the same few starts and the
     model never learns to predict from the phases between them (horse-gallop: one window of 32
-    fits its 29 training frames; docs/method.md, "A window that fits the data"). Never below ``MIN_FITTED_WINDOW`` frames
-    while a window that long fits; below that, the longest window that fits at all; ``window``
+    fits its 29 training frames; docs/method.md, "A window that fits the data"). Never below
+    ``MIN_FITTED_WINDOW`` frames while a window that long fits; below that, the longest window that fits at all; ``window``
     unchanged if already enough windows fit, or if no window of 2 frames fits (the sampler then
     says why).
     """
