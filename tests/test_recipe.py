@@ -162,7 +162,7 @@ def test_latent_health_separates_the_mean_from_the_noise_and_is_logged(tmp_path)
 
 
 def test_training_warns_when_the_latent_collapses(tmp_path, monkeypatch):
-    import meshseq.train as tr
+    import meshseq.training.loop as tr
 
     seq, feats = limb()
     data = training_data(seq, feats)
@@ -486,6 +486,7 @@ def test_training_clips_gradients_and_resumes_the_clip_history_bit_for_bit(tmp_p
     import csv
 
     import meshseq.train as T
+    import meshseq.training.loop as loop
 
     seq, feats = limb()
     data = training_data(seq, feats)
@@ -498,7 +499,7 @@ def test_training_clips_gradients_and_resumes_the_clip_history_bit_for_bit(tmp_p
         real_scale(parameters, scale)
         after.append(float(T.grad_norm(parameters)))
 
-    monkeypatch.setattr(T, "scale_gradients", spy)
+    monkeypatch.setattr(loop, "scale_gradients", spy)
     one = train(data, tmp_path / "a", TrainConfig(iterations=16, **cfg), SMALL, device="cpu", progress=False, log=None)
     with open(tmp_path / "a" / "metrics.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -573,6 +574,7 @@ def test_ema_checkpoints_deliver_the_average_and_resume_bit_for_bit(tmp_path, mo
     training state, a resumed run ends exactly where the whole run does, and the average does not
     change training."""
     import meshseq.train as T
+    import meshseq.training.loop as loop
     from meshseq import checkpoint as ckpt
 
     seq, feats = limb()
@@ -587,9 +589,9 @@ def test_ema_checkpoints_deliver_the_average_and_resume_bit_for_bit(tmp_path, mo
         seen.append(([p.detach().clone() for p in parameters], decay))
         real(average, parameters, decay)
 
-    monkeypatch.setattr(T, "update_average", spy)
+    monkeypatch.setattr(loop, "update_average", spy)
     one = train(data, tmp_path / "a", TrainConfig(iterations=10, **cfg), SMALL, device="cpu", progress=False, log=None)
-    monkeypatch.setattr(T, "update_average", real)
+    monkeypatch.setattr(loop, "update_average", real)
     assert [d for _, d in seen] == [T.average_decay(0.5, t) for t in range(1, 11)]
     expected = initial
     for weights, decay in seen:

@@ -349,7 +349,7 @@ def test_divergence_stops_with_one_line_and_keeps_the_last_good_checkpoint(tmp_p
 
 
 def test_non_finite_gradient_is_caught_before_the_update(tmp_path, monkeypatch):
-    from meshseq import train as train_module
+    from meshseq.training import loop as train_module
 
     _, data = limb_data(frames=24)
     real = train_module.grad_norm

@@ -210,7 +210,7 @@ def load(run: str | os.PathLike, device: str = "cpu") -> Model:
     ``meshseq.checkpoint_schema``: a damaged or edited checkpoint, or one with non-finite
     weights, is a one-line MeshseqError naming the file and field.
     """
-    from meshseq.train import resolve_device
+    from meshseq.device import resolve_device
 
     dev = resolve_device(device)
     loaded = ckpt.load(run)

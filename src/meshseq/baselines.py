@@ -89,7 +89,7 @@ def vae_param_groups(vae: MeshVAE, lr: float) -> list[dict]:
     frame-to-frame change, log-variance -182, predictions 25 x worse than standing still; with
     the factor (0.119) its reconstruction error is 35.
     """
-    from meshseq.train import FC_REFERENCE_FAN_IN, fc_lr_factor
+    from meshseq.training.config import FC_REFERENCE_FAN_IN, fc_lr_factor
 
     fc = vae.net.fc.weight
     factor = fc_lr_factor(fc.shape[1], VAE_FC_LR, FC_REFERENCE_FAN_IN)

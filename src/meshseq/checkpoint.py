@@ -2,7 +2,7 @@
 
 A run folder ``RUN`` holds ``RUN/checkpoints/ITERATION/`` (zero-padded) folders, each with
 
-* ``model.safetensors``: ``model.<name>`` weights of the generator (with ``--ema-decay``: their
+* ``model.safetensors``: ``model.<name>`` weights of the generator (with ``ema_decay``: their
   moving average, the delivered model), ``reference.vertices``
   ``(V, 3)`` float64 and ``reference.faces`` ``(F, 3)`` int64 (the mesh the features refer to, so
   features can be turned back into vertices without the training data);
@@ -11,7 +11,7 @@ A run folder ``RUN`` holds ``RUN/checkpoints/ITERATION/`` (zero-padded) folders,
 * ``state.safetensors``: Adam moments ``optim.<param name>.<key>``, the torch CPU generator state
   ``rng.torch`` (uint8) and, on CUDA, ``rng.cuda``; under DistributedDataParallel every other
   process's as ``rng.torch.rank<R>`` / ``rng.cuda.rank<R>`` (each rank draws its own noise);
-  with ``--ema-decay``, ``train.<param name>``: the weights training continues from;
+  with ``ema_decay``, ``train.<param name>``: the weights training continues from;
 * ``state.json``: Adam step counts and hyper-parameters, the numpy bit-generator state (common to
   all ranks), Python's ``random`` state, the number of processes and the SHA-256 of
   ``state.safetensors``.
@@ -48,12 +48,11 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save
 
+from meshseq.checkpoint_schema import FORMAT, FORMAT_VERSION
 from meshseq.errors import MeshseqError, MeshseqWarning
 from meshseq.io import atomic_output
 from meshseq.mesh import topology_hash
 
-FORMAT = "meshseq-bdlstm-checkpoint"
-FORMAT_VERSION = 1
 MODEL_TENSORS, MODEL_META = "model.safetensors", "model.json"
 STATE_TENSORS, STATE_META = "state.safetensors", "state.json"
 _DIR_RE = re.compile(r"^\d{8}$")
@@ -381,7 +380,7 @@ def load_optimizer_state(optimizer: torch.optim.Optimizer, names: list[str], ten
 
 def training_weights(state_tensors: dict) -> dict:
     """The weights training continues from, stored as ``train.<name>`` in the training state
-    behind a weight average (``--ema-decay``): ``{name: tensor}``, empty for runs without one."""
+    behind a weight average (``ema_decay``): ``{name: tensor}``, empty for runs without one."""
     return {k[len("train."):]: v for k, v in state_tensors.items() if k.startswith("train.")}
 
 

@@ -27,6 +27,10 @@ import torch
 
 from meshseq.errors import MeshseqError
 
+#: what a checkpoint's model.json says it is (``format``) and the newest version this meshseq reads
+FORMAT = "meshseq-bdlstm-checkpoint"
+FORMAT_VERSION = 1
+
 
 class CheckpointError(MeshseqError):
     """A checkpoint file does not match its schema (a MeshseqError naming file and field)."""
@@ -114,7 +118,7 @@ _ANNOTATIONS = {"int": int, "float": float, "str": str, "bool": bool, "list[floa
 
 def config_schema(cls) -> dict:
     """The JSON schema of a config dataclass (``ModelConfig``, ``TrainConfig``) from its fields."""
-    from meshseq.train import LEGACY_TRAIN_DEFAULTS  # added later, with the value older runs had
+    from meshseq.training.config import LEGACY_TRAIN_DEFAULTS  # added later, with the value older runs had
 
     added_later = ADDED_LATER | set(LEGACY_TRAIN_DEFAULTS)
     schema = {}
@@ -133,7 +137,7 @@ _TOPOLOGY = {"hash": str, "n_vertices": int, "n_faces": int}
 
 def model_meta_schema() -> dict:
     from meshseq.model import ModelConfig
-    from meshseq.train import TrainConfig
+    from meshseq.training.config import TrainConfig
 
     return {
         "format": str, "format_version": int, "iteration": int, "sha256": str,
@@ -150,9 +154,8 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
     ``iteration``: the one the folder's name says, if it is a checkpoint folder.
     """
     from meshseq.acap.scaling import SCALING_MODES
-    from meshseq.checkpoint import FORMAT, FORMAT_VERSION
     from meshseq.model import ModelConfig
-    from meshseq.train import TrainConfig
+    from meshseq.training.config import TrainConfig
 
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise CheckpointError(file, "", f"not a {FORMAT} file")

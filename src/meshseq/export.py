@@ -185,7 +185,7 @@ def save_glb(
     **kwargs,
 ) -> Path:
     """Write :func:`glb_bytes` to ``path`` (must end in .glb) atomically; returns the path."""
-    from meshseq.io import atomic_output
+    from meshseq.meshfiles import atomic_output
 
     target = Path(path)
     if target.suffix.lower() != ".glb":

@@ -133,7 +133,7 @@ def extract(
     ref = v[0] if reference is None else np.asarray(reference, dtype=np.float64)
     op = GradientOperator(ref, topo, normal_row=normal_row)
     if exact:
-        from meshseq.acap.reconstruct import ExactEncoder
+        from meshseq.acap.operators import ExactEncoder
 
         encoder = ExactEncoder(ref, topo, op.edge_weights)
         return _pack_features(lambda frames: encoder(op(v[frames]), v[frames]), len(v), topo, consistency, threads)

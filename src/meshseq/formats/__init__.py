@@ -40,7 +40,7 @@ def split_address(text: str) -> tuple[str, str, str] | None:
     """``"base.obj:cache.pc2"`` -> ``("cache", "cache.pc2", "base.obj")``;
     ``"anim.glb:Mesh"`` / ``"shot.usda:/World/Mesh"`` -> ``("address", file, name)``;
     None when ``text`` is neither (it is then an ordinary path)."""
-    from meshseq.io import MESH_EXTENSIONS
+    from meshseq.meshfiles import MESH_EXTENSIONS
 
     colons = [i for i, ch in enumerate(text) if ch == ":"]
     for i in colons:
@@ -78,7 +78,7 @@ def load(text: str, *, name: str | None = None):
     if split is None:
         return None
     kind, file, extra = split
-    from meshseq.io import check_input_file
+    from meshseq.meshfiles import check_input_file
 
     check_input_file(Path(file))
     if kind == "cache":
@@ -93,7 +93,7 @@ def load(text: str, *, name: str | None = None):
 
 
 def _find_base(cache: Path) -> Path:
-    from meshseq.io import MESH_EXTENSIONS
+    from meshseq.meshfiles import MESH_EXTENSIONS
 
     found = [cache.with_suffix(s) for s in MESH_EXTENSIONS if cache.with_suffix(s).is_file()]
     if not found:
@@ -112,7 +112,7 @@ def load_cache(cache: Path, base: Path | None, *, name: str | None = None):
     faces ``(F, 3)`` from the base mesh, whose vertex count must be the cache's ``V``.
     """
     from meshseq.formats.caches import fps_from_times, read_mdd, read_pc2
-    from meshseq.io import _check_mesh_path, _read_mesh, validate_sequence
+    from meshseq.meshfiles import _check_mesh_path, _read_mesh, validate_sequence
 
     if base is None:
         base = _find_base(cache)
@@ -139,7 +139,7 @@ def save(seq, target: Path, *, force: bool = False, up: str = "y", normals: bool
     ``up`` is the data's up axis (.glb: a node rotation; USD: the stage's upAxis, y or z);
     ``normals``: .glb only; ``meters_per_unit``: USD only. Returns ``target``.
     """
-    from meshseq.io import _obj_writer, _refuse_existing, atomic_output
+    from meshseq.meshfiles import _obj_writer, _refuse_existing, atomic_output
 
     suffix = target.suffix.lower()
     fps = seq.fps or DEFAULT_FPS

@@ -160,7 +160,7 @@ def load_gltf(path: Path, mesh_name: str | None, *, name: str | None):
     """
     import pygltflib
 
-    from meshseq.io import _one_line
+    from meshseq.meshfiles import _one_line
 
     try:
         with warnings.catch_warnings():
@@ -179,7 +179,7 @@ def load_gltf(path: Path, mesh_name: str | None, *, name: str | None):
 
 def _read_document(doc, path: Path, mesh_name: str | None, name: str | None):
     """The sequence of a parsed glTF document (see :func:`load_gltf`)."""
-    from meshseq.io import _polygons_to_triangles, validate_sequence
+    from meshseq.meshfiles import _polygons_to_triangles, validate_sequence
 
     meshes = doc.meshes or []
     morphed = [i for i, m in enumerate(meshes) if m.primitives and all(p.targets for p in m.primitives)]

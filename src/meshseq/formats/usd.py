@@ -41,7 +41,7 @@ def load_usd(path: Path, prim_path: str | None, *, name: str | None):
 
     Returns a validated :class:`meshseq.io.MeshSequence` (vertices ``(T, V, 3)``, faces ``(F, 3)``).
     """
-    from meshseq.io import _one_line
+    from meshseq.meshfiles import _one_line
 
     Sdf, Usd, UsdGeom, _ = _pxr()
     label = f"{path}:{prim_path}" if prim_path else str(path)
@@ -65,7 +65,7 @@ def load_usd(path: Path, prim_path: str | None, *, name: str | None):
 
 def _read_stage(stage, path: Path, prim_path: str | None, name: str | None):
     """The sequence of an open stage (see :func:`load_usd`)."""
-    from meshseq.io import _polygons_to_triangles, validate_sequence
+    from meshseq.meshfiles import _polygons_to_triangles, validate_sequence
 
     Sdf, Usd, UsdGeom, _ = _pxr()
     label = f"{path}:{prim_path}" if prim_path else str(path)
@@ -131,7 +131,7 @@ def save_usd(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, *
              force: bool = False) -> Path:
     """Write ``vertices (T, V, 3)`` with ``faces (F, 3)`` as a USD stage (format from the suffix:
     .usda text, .usdc / .usd binary crate), atomically; returns the path."""
-    from meshseq.io import atomic_output
+    from meshseq.meshfiles import atomic_output
 
     Sdf, Usd, UsdGeom, Vt = _pxr()
     target = Path(path)
