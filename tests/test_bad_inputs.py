@@ -77,18 +77,23 @@ def test_unwritable_output_is_one_line_before_any_work(command, where, limb_npz,
     assert listing(tmp_path) == before
 
 
-@pytest.mark.parametrize("option, fragment", [
-    (["--window", "1"], "--window 1: a window needs at least 2 frames"),
-    (["--holdout", "1.0"], "--holdout 1.0: expected a fraction in [0, 1)"),
-    (["--latent", "0"], "--latent 0: expected an integer of at least 1"),
-    (["--lstm-layers", "0"], "--lstm-layers 0"),
-    (["--holdout-at", "xyz"], "--holdout-at 'xyz'"),
-    (["--holdout-at", "1.5"], "--holdout-at '1.5'"),
-    # needs the data (the default recipe's --window-fit shortens a window that does not fit)
-    (["--window", "100", "--window-fit", "none"], "--window 100 --stride 1 needs 100 consecutive training frames"),
+@pytest.mark.parametrize("option, config, fragment", [
+    (["--window", "1"], "", "--window 1: a window needs at least 2 frames"),
+    ([], "holdout = 1.0", "run.toml: holdout: 1.0: expected a fraction in [0, 1)"),
+    (["--latent", "0"], "", "--latent 0: expected an integer of at least 1"),
+    ([], "[model]\nlstm_layers = 0", "run.toml: model.lstm_layers: 0: expected an integer of at least 1"),
+    ([], 'holdout_at = "xyz"', "run.toml: holdout_at: 'xyz'"),
+    ([], 'holdout_at = "1.5"', "run.toml: holdout_at: '1.5'"),
+    ([], "w_motion = -1", "run.toml: w_motion: loss weight w_motion=-1.0 must be >= 0"),
+    ([], "w_motoin = 1", "run.toml: w_motoin: not a training option (did you mean w_motion?"),
+    # needs the data (the default recipe's window_fit shortens a window that does not fit)
+    (["--window", "100"], 'window_fit = "none"', "--window 100 --stride 1 needs 100 consecutive training frames"),
 ])
-def test_train_option_errors_create_no_run_folder(option, fragment, limb_npz, tmp_path, capsys):
+def test_train_option_errors_create_no_run_folder(option, config, fragment, limb_npz, tmp_path, capsys):
     """Issue 13 (4): these errors were found after RUN was created, leaving an empty folder."""
+    if config:
+        (tmp_path / "run.toml").write_text(config + "\n")
+        option = option + ["--config", str(tmp_path / "run.toml")]
     one_line_error(capsys, ["train", limb_npz, "--out", tmp_path / "run", "--iterations", "1", "--no-progress",
                             *option], fragment)
     assert not (tmp_path / "run").exists()

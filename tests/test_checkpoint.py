@@ -182,9 +182,10 @@ def test_sigkill_at_any_moment_then_resume(tmp_path):
     run = tmp_path / "run"
     script = tmp_path / "train_script.py"
     script.write_text(KILL_SCRIPT)
+    (tmp_path / "run.toml").write_text("checkpoint_every = 1\nlog_every = 1\neval_every = 3\nkeep = 3\n"
+                                       "[model]\nlstm_layers = 1\n")
     args = [str(tmp_path / "limb.npz"), "--out", str(run), "--window", "6", "--batch", "2", "--latent", "16",
-            "--lstm-layers", "1", "--checkpoint-every", "1", "--log-every", "1", "--eval-every", "3",
-            "--no-progress", "--keep", "3"]
+            "--config", str(tmp_path / "run.toml"), "--no-progress"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
     for round_ in range(3):  # kill it three times at different moments
         proc = subprocess.Popen([sys.executable, str(script), "train", *args, "--iterations", "100000",
@@ -400,9 +401,11 @@ def test_edited_checkpoint_through_the_commands(good_checkpoint, limb, tmp_path,
 # -- --resume never starts over; --keep; --force (issue 13.2, 13.3) ----------------------------
 
 
-def _cli_args(tmp_path, run, *extra):
+def _cli_args(tmp_path, run, *extra, config: str = ""):
+    """``meshseq train`` of a tiny model into ``run`` with ``extra`` flags and ``config`` (TOML lines)."""
+    (tmp_path / "cli.toml").write_text(f"log_every = 1\n{config}\n[model]\nlstm_layers = 1\n")
     return ["train", str(tmp_path / "limb.npz"), "--out", str(run), "--window", "6", "--batch", "2", "--latent",
-            "16", "--lstm-layers", "1", "--no-progress", "--log-every", "1", *extra]
+            "16", "--no-progress", "--config", str(tmp_path / "cli.toml"), *extra]
 
 
 def _one_error_line(capsys) -> str:
@@ -424,12 +427,12 @@ def test_resume_never_starts_over(tmp_path, limb, capsys):
     assert "no checkpoint" in _one_error_line(capsys) and not any((tmp_path / "empty").iterdir())
     # a run with stored options other than the defaults
     run = tmp_path / "run"
-    assert main(_cli_args(tmp_path, run, "--iterations", "4", "--checkpoint-every", "2", "--lr", "0.002",
-                          "--seed", "5")) == 0
+    assert main(_cli_args(tmp_path, run, "--iterations", "4", "--seed", "5",
+                          config="checkpoint_every = 2\nlr = 0.002")) == 0
     metrics = (run / "metrics.csv").read_text()
     # resuming with other options on the command line: the stored ones are used
-    assert main(_cli_args(tmp_path, run, "--iterations", "6", "--checkpoint-every", "2", "--resume", "--lr",
-                          "0.5", "--window", "5", "--consistency", "spatial")) == 0
+    assert main(_cli_args(tmp_path, run, "--iterations", "6", "--resume", "--window", "5",
+                          config='checkpoint_every = 2\nlr = 0.5\nconsistency = "spatial"')) == 0
     meta = json.loads((ckpt.latest_checkpoint(run) / "model.json").read_text())
     assert meta["iteration"] == 6 and meta["train"]["lr"] == 0.002 and meta["train"]["window"] == 6
     assert meta["train"]["seed"] == 5 and meta["train"]["iterations"] == 6
@@ -472,7 +475,7 @@ def test_force_removes_only_what_meshseq_wrote(tmp_path, limb, capsys):
     seq, _ = limb
     save_sequence(seq, tmp_path / "limb.npz")
     run = tmp_path / "run"
-    assert main(_cli_args(tmp_path, run, "--iterations", "4", "--checkpoint-every", "2")) == 0
+    assert main(_cli_args(tmp_path, run, "--iterations", "4", config="checkpoint_every = 2")) == 0
     mine = [run / "notes.txt", run / "checkpoints" / "README.txt", run / "tensorboard" / "my-plot.png",
             run / "checkpoints" / "old-runs" / "a.txt"]
     for p in mine:

@@ -35,9 +35,13 @@ def limb():
     return seq, feats
 
 
-#: a one-iteration ``meshseq train`` on a tiny model (CLI option tests)
-TINY_CLI = ["--iterations", "1", "--window", "6", "--batch", "2", "--latent", "8", "--lstm-layers", "1",
-            "--no-progress", "--eval-every", "0"]
+def tiny_cli(folder, options: str = "", name: str = "tiny") -> list[str]:
+    """A one-iteration ``meshseq train`` on a tiny model (CLI option tests): its flags and a
+    ``--config`` file (``folder/NAME.toml``) holding ``options`` (TOML lines of TrainConfig fields)."""
+    config = folder / f"{name}.toml"
+    config.write_text(f"eval_every = 0\n{options}\n[model]\nlstm_layers = 1\n")
+    return ["--iterations", "1", "--window", "6", "--batch", "2", "--latent", "8", "--no-progress",
+            "--config", str(config)]
 
 
 def stored_configs(run):
@@ -249,7 +253,7 @@ def test_cli_recipe_sets_the_options_and_flags_override(tmp_path):
     seq, _ = limb()
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
-    common, stored = TINY_CLI, stored_configs
+    common, stored = tiny_cli(tmp_path), stored_configs
 
     assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper", *common]) == 0
     train_opts, model_opts = stored(tmp_path / "p")
@@ -257,8 +261,8 @@ def test_cli_recipe_sets_the_options_and_flags_override(tmp_path):
     assert main(["train", str(data), "--out", str(tmp_path / "d"), *common]) == 0
     train_opts, model_opts = stored(tmp_path / "d")
     assert train_opts["w_l2"] == RECIPES["default"]["w_l2"] and model_opts["input_norm"] is True
-    assert main(["train", str(data), "--out", str(tmp_path / "o"), "--recipe", "paper", "--input-norm",
-                 "--w-l2", "0.5", "--given", "2", *common]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "o"), "--recipe", "paper",
+                 *tiny_cli(tmp_path, "input_norm = true\nw_l2 = 0.5\ngiven = 2", "o")]) == 0
     train_opts, model_opts = stored(tmp_path / "o")
     assert train_opts["w_l2"] == 0.5 and train_opts["given"] == 2 and model_opts["input_norm"] is True
     assert train_opts["w_kl"] == 0.1  # the rest from the paper's recipe
@@ -408,7 +412,7 @@ def test_kl_weight_scales_with_the_vertices_in_the_default_recipe_only():
     assert torch.isclose(scaled, base + 0.1 * (factor - 1.0) * terms["kl"], rtol=1e-5)
 
 
-def test_logvar_max_bounds_the_sampling_noise_and_is_stored(tmp_path):
+def test_logvar_max_bounds_the_sampling_noise_and_is_stored(tmp_path, capsys):
     import meshseq
     from meshseq.cli import main
     from meshseq.io import save_sequence
@@ -438,7 +442,7 @@ def test_logvar_max_bounds_the_sampling_noise_and_is_stored(tmp_path):
     # the CLI stores it in both configs; "none" asks for the paper's unbounded head
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
-    common = TINY_CLI
+    common = tiny_cli(tmp_path)
 
     def stored(run):
         train_opts, model_opts = stored_configs(run)
@@ -446,19 +450,20 @@ def test_logvar_max_bounds_the_sampling_noise_and_is_stored(tmp_path):
 
     assert main(["train", str(data), "--out", str(tmp_path / "d"), *common]) == 0
     assert stored(tmp_path / "d") == (0.0, 0.0)
-    assert main(["train", str(data), "--out", str(tmp_path / "n"), "--logvar-max", "none", *common]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "n"),
+                 *tiny_cli(tmp_path, 'logvar_max = "none"', "n")]) == 0
     assert stored(tmp_path / "n") == (None, None)
-    # other options' "none" (the same interned string from Python) stays the string "none"
-    assert main(["train", str(data), "--out", str(tmp_path / "s"), "--kl-scale", "none", "--fc-lr", "none",
-                 *common]) == 0
+    # other options' "none" stays the string "none"
+    assert main(["train", str(data), "--out", str(tmp_path / "s"),
+                 *tiny_cli(tmp_path, 'kl_scale = "none"\nfc_lr = "none"', "s")]) == 0
     train_opts, _ = stored_configs(tmp_path / "s")
     assert train_opts["kl_scale"] == "none" and train_opts["fc_lr"] == "none" and train_opts["logvar_max"] == 0.0
-    assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper", "--logvar-max", "-1",
-                 *common]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper",
+                 *tiny_cli(tmp_path, "logvar_max = -1", "p")]) == 0
     assert stored(tmp_path / "p") == (-1.0, -1.0)
     assert meshseq.load(tmp_path / "p").net.config.logvar_max == -1.0
-    with pytest.raises(SystemExit):  # argparse's usage error, naming the option
-        main(["train", str(data), "--out", str(tmp_path / "x"), "--logvar-max", "big", *common])
+    assert main(["train", str(data), "--out", str(tmp_path / "x"), *tiny_cli(tmp_path, 'logvar_max = "big"', "x")]) == 2
+    assert f"{tmp_path / 'x.toml'}: logvar_max: expected a number or \"none\", got 'big'" in capsys.readouterr().err
 
 
 def test_clip_threshold_is_a_multiple_of_the_median_of_recent_norms():
@@ -520,7 +525,7 @@ def test_training_clips_gradients_and_resumes_the_clip_history_bit_for_bit(tmp_p
     assert not torch.equal(free["model"].fc.weight, one["model"].fc.weight)
 
 
-def test_cli_grad_clip_option(tmp_path):
+def test_cli_grad_clip_option(tmp_path, capsys):
     from meshseq.cli import main
     from meshseq.io import save_sequence
 
@@ -528,13 +533,14 @@ def test_cli_grad_clip_option(tmp_path):
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
     clip = {}
-    for name, extra in (("d", ["--grad-clip", "3"]), ("n", ["--grad-clip", "none"]), ("p", ["--recipe", "paper"]),
-                        ("q", ["--recipe", "paper", "--grad-clip", "2"])):
-        assert main(["train", str(data), "--out", str(tmp_path / name), *extra, *TINY_CLI]) == 0
+    for name, recipe, option in (("d", "default", "grad_clip = 3"), ("n", "default", 'grad_clip = "none"'),
+                                 ("p", "paper", ""), ("q", "paper", "grad_clip = 2")):
+        assert main(["train", str(data), "--out", str(tmp_path / name), "--recipe", recipe,
+                     *tiny_cli(tmp_path, option, name)]) == 0
         clip[name] = stored_configs(tmp_path / name)[0]["grad_clip"]
     assert clip == {"d": 3.0, "n": None, "p": None, "q": 2.0}
-    with pytest.raises(SystemExit):
-        main(["train", str(data), "--out", str(tmp_path / "x"), "--grad-clip", "big", *TINY_CLI])
+    assert main(["train", str(data), "--out", str(tmp_path / "x"), *tiny_cli(tmp_path, "grad_clip = -1", "x")]) == 2
+    assert f"{tmp_path / 'x.toml'}: grad_clip: -1.0: expected a positive number or none" in capsys.readouterr().err
 
 
 def test_adam_beta2_is_checked_stored_and_used(tmp_path):
@@ -549,7 +555,7 @@ def test_adam_beta2_is_checked_stored_and_used(tmp_path):
     seq, _ = limb()
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
-    assert main(["train", str(data), "--out", str(tmp_path / "r"), "--adam-beta2", "0.99", *TINY_CLI]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "r"), *tiny_cli(tmp_path, "adam_beta2 = 0.99")]) == 0
     assert stored_configs(tmp_path / "r")[0]["adam_beta2"] == 0.99
     state = json.loads(next((tmp_path / "r" / "checkpoints").iterdir()).joinpath("state.json").read_text())
     assert {tuple(g["betas"]) for g in state["optimizer"]["param_groups"]} == {(0.9, 0.99)}
@@ -640,12 +646,13 @@ def test_ema_option_is_checked_stored_and_its_training_weights_required(tmp_path
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
     got = {}
-    for name, extra in (("e", ["--ema-decay", "0.9"]), ("n", ["--ema-decay", "none"]),
-                        ("p", ["--recipe", "paper"])):
-        assert main(["train", str(data), "--out", str(tmp_path / name), *extra, *TINY_CLI]) == 0
+    for name, recipe, option in (("e", "default", "ema_decay = 0.9"), ("n", "default", 'ema_decay = "none"'),
+                                 ("p", "paper", "")):
+        assert main(["train", str(data), "--out", str(tmp_path / name), "--recipe", recipe,
+                     *tiny_cli(tmp_path, option, name)]) == 0
         got[name] = stored_configs(tmp_path / name)[0]["ema_decay"]
     assert got == {"e": 0.9, "n": None, "p": None}
-    assert main(["train", str(data), "--out", str(tmp_path / "d"), *TINY_CLI]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "d"), *tiny_cli(tmp_path)]) == 0
     assert stored_configs(tmp_path / "d")[0]["ema_decay"] == 0.99
     # a training state without its training weights is refused on load, naming the tensor
     folder = ckpt.latest_checkpoint(tmp_path / "e")
@@ -695,11 +702,11 @@ def test_mu_max_squashes_the_latent_mean_softly_and_is_stored(tmp_path):
     assert ModelConfig.from_dict({"n_vertices": 10}).mu_max is None  # models stored before the option
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
-    assert main(["train", str(data), "--out", str(tmp_path / "m"), "--mu-max", "3", *TINY_CLI]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "m"), *tiny_cli(tmp_path, "mu_max = 3", "m")]) == 0
     train_opts, model_opts = stored_configs(tmp_path / "m")
     assert train_opts["mu_max"] == 3.0 and model_opts["mu_max"] == 3.0
     assert meshseq.load(tmp_path / "m").net.config.mu_max == 3.0
-    assert main(["train", str(data), "--out", str(tmp_path / "n"), "--mu-max", "none", *TINY_CLI]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "n"), *tiny_cli(tmp_path, 'mu_max = "none"', "n")]) == 0
     assert stored_configs(tmp_path / "n")[1]["mu_max"] is None
 
 
@@ -715,8 +722,10 @@ def test_feedback_grad_option_is_checked_and_stored(tmp_path):
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
     got = {}
-    for name, extra in (("s", ["--feedback-grad", "stop"]), ("d", []), ("p", ["--recipe", "paper"])):
-        assert main(["train", str(data), "--out", str(tmp_path / name), *extra, *TINY_CLI]) == 0
+    for name, recipe, option in (("s", "default", 'feedback_grad = "stop"'), ("d", "default", ""),
+                                 ("p", "paper", "")):
+        assert main(["train", str(data), "--out", str(tmp_path / name), "--recipe", recipe,
+                     *tiny_cli(tmp_path, option, name)]) == 0
         got[name] = stored_configs(tmp_path / name)[0]["feedback_grad"]
     assert got == {"s": "stop", "d": TrainConfig().feedback_grad, "p": "full"}
 
@@ -731,13 +740,13 @@ def test_fc_lr_fan_in_option_is_stored_and_sets_the_fc_rate(tmp_path):
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
     fan_in = seq.n_vertices * 9
-    assert main(["train", str(data), "--out", str(tmp_path / "r"), "--fc-lr", "fan-in", "--fc-lr-fan-in",
-                 str(fan_in // 2), *TINY_CLI]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "r"),
+                 *tiny_cli(tmp_path, f'fc_lr = "fan-in"\nfc_lr_fan_in = {fan_in // 2}', "r")]) == 0
     assert stored_configs(tmp_path / "r")[0]["fc_lr_fan_in"] == fan_in // 2
     state = json.loads(next((tmp_path / "r" / "checkpoints").glob("*/state.json")).read_text())
     lrs = [g["lr"] for g in state["optimizer"]["param_groups"]]
     assert len(lrs) == 2 and lrs[1] == pytest.approx(lrs[0] / 2)
-    assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper", *TINY_CLI]) == 0
+    assert main(["train", str(data), "--out", str(tmp_path / "p"), "--recipe", "paper", *tiny_cli(tmp_path)]) == 0
     assert stored_configs(tmp_path / "p")[0]["fc_lr_fan_in"] == RECIPES["paper"]["fc_lr_fan_in"]
 
 

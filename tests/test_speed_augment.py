@@ -76,10 +76,15 @@ def test_speed_augment_option_is_checked_and_stored(tmp_path, capsys):
     seq = twisting_limb(frames=40, rings=8, segments=6, seed=0)
     save_sequence(seq, tmp_path / "limb.npz")
     argv = ["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--iterations", "3", "--window",
-            "6", "--batch", "2", "--latent", "16", "--lstm-layers", "1", "--no-progress", "--threads", "1"]
-    assert main(argv + ["--speed-augment", "0.9"]) == 2
+            "6", "--batch", "2", "--latent", "16", "--no-progress", "--threads", "1"]
+
+    def config(rate: float) -> list[str]:
+        (tmp_path / f"{rate}.toml").write_text(f"speed_augment = {rate}\n[model]\nlstm_layers = 1\n")
+        return ["--config", str(tmp_path / f"{rate}.toml")]
+
+    assert main(argv + config(0.9)) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "--speed-augment 0.9" in err
-    assert main(argv + ["--speed-augment", "1.5"]) == 0
+    assert err.count("\n") == 0 and f"{tmp_path / '0.9.toml'}: speed_augment: 0.9: expected a number >= 1" in err
+    assert main(argv + config(1.5)) == 0
     meta = json.loads((ckpt.latest_checkpoint(tmp_path / "run") / "model.json").read_text())
     assert meta["iteration"] == 3 and meta["train"]["speed_augment"] == 1.5

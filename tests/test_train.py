@@ -192,9 +192,11 @@ def test_cli_train_then_load_and_use_the_model(tmp_path, capsys):
     seq, _ = limb_data(frames=30)
     save_sequence(seq, tmp_path / "limb.npz")
     run = tmp_path / "run"
+    config = tmp_path / "run.toml"
+    config.write_text("checkpoint_every = 2\nstride = 2\n[model]\nlstm_layers = 1\n")
     argv = ["train", str(tmp_path / "limb.npz"), "--out", str(run), "--iterations", "4", "--window", "6",
-            "--batch", "2", "--latent", "16", "--lstm-layers", "1", "--checkpoint-every", "2", "--no-progress",
-            "--device", "auto", "--variant", "bd", "--stride", "2", "--seed", "3"]
+            "--batch", "2", "--latent", "16", "--config", str(config), "--no-progress",
+            "--device", "auto", "--variant", "bd", "--seed", "3"]
     assert main(argv) == 0
     assert "trained to iteration 4" in capsys.readouterr().out
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["00000002", "00000004"]
@@ -231,9 +233,10 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert err.startswith("meshseq: error:") and "missing.npz" in err and err.count("\n") == 1
     seq, _ = limb_data(frames=10)
     save_sequence(seq, tmp_path / "limb.npz")
-    # (the default recipe would shorten the window to the data: --window-fit none keeps it)
+    # (the default recipe would shorten the window to the data: window_fit = "none" keeps it)
+    (tmp_path / "as-given.toml").write_text('window_fit = "none"\n')
     assert main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--window", "32",
-                 "--window-fit", "none"]) == 2
+                 "--config", str(tmp_path / "as-given.toml")]) == 2
     assert "--window 32" in capsys.readouterr().err
     assert main(["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--batch", "0"]) == 2
     assert "--batch 0" in capsys.readouterr().err
@@ -326,15 +329,16 @@ def test_divergence_stops_with_one_line_and_keeps_the_last_good_checkpoint(tmp_p
     seq, _ = limb_data(frames=30)
     save_sequence(seq, tmp_path / "limb.npz")
     run = tmp_path / "run"
+    (tmp_path / "run.toml").write_text("checkpoint_every = 1\nlog_every = 1\nkeep = 3\nlr = 1e6\n"
+                                       "[model]\nlstm_layers = 1\n")
     argv = ["train", str(tmp_path / "limb.npz"), "--out", str(run), "--iterations", "20", "--window", "6",
-            "--batch", "2", "--latent", "16", "--lstm-layers", "1", "--checkpoint-every", "1", "--log-every", "1",
-            "--keep", "3", "--no-progress", "--lr", "1e6"]
+            "--batch", "2", "--latent", "16", "--config", str(tmp_path / "run.toml"), "--no-progress"]
     assert main(argv) == 2
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.startswith("meshseq: error:")]
     assert len(lines) == 1 and "Traceback" not in err, err
     message = lines[0]
-    assert "training diverged at iteration" in message and "--lr" in message
+    assert "training diverged at iteration" in message and "a smaller lr" in message
     bad_it = int(message.split("iteration ")[1].split(":")[0])
     assert any(term in message for term in ("the loss term", "the total loss", "the gradient norm"))
     folders = ckpt.list_checkpoints(run)
@@ -443,3 +447,65 @@ def test_gather_frames_is_advanced_indexing():
     frames = torch.randn(10, 7, 9)
     rows = torch.tensor([[3, 4, 5], [9, 8, 7]])
     assert torch.equal(gather_frames(frames, rows), frames[rows])
+
+
+# -- the command surface: a short --help, everything else in --config FILE.toml -----------------
+
+
+def _train_args(*argv):
+    from meshseq.cli import build_parser
+
+    return build_parser().parse_args(["train", "DATA", "--out", "RUN", *argv])
+
+
+def test_train_help_is_short_and_shows_what_users_set(capsys):
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    text = capsys.readouterr().out
+    assert len(text.splitlines()) <= 60, text
+    for flag in ("--out", "--iterations", "--variant", "--window", "--batch", "--latent", "--device", "--threads",
+                 "--seed", "--resume", "--force", "--validation", "--precision", "--recipe", "--config"):
+        assert flag in text, flag
+    assert "--w-motion" not in text and "--lstm-layers" not in text  # in --config now
+
+
+def test_config_file_sits_between_the_recipe_and_the_command_line(tmp_path):
+    from meshseq.cli.train_cmds import train_options
+    from meshseq.train import RECIPES
+
+    config = tmp_path / "run.toml"
+    config.write_text('window = 12\nw_motion = 3.0\nema_decay = "none"\neval_every = 7\n'
+                      '[model]\nlstm_layers = 2\nconv_impl = "gather"\n')
+    cfg, model = train_options(_train_args("--recipe", "paper", "--config", str(config), "--window", "6",
+                                           "--latent", "8"))
+    assert cfg.window == 6 and cfg.w_motion == 3.0 and cfg.ema_decay is None and cfg.eval_every == 7
+    assert cfg.w_l2 == RECIPES["paper"]["w_l2"] == 0.1 and cfg.input_norm is False  # the rest: the recipe's
+    assert model == {"lstm_layers": 2, "conv_impl": "gather", "latent": 8}
+    cfg, model = train_options(_train_args())
+    assert cfg == TrainConfig() and model == {}
+    # an integer where a number is expected is that number
+    config.write_text("lr = 1\n")
+    assert train_options(_train_args("--config", str(config)))[0].lr == 1.0
+
+
+@pytest.mark.parametrize("text, message", [
+    ("w_motoin = 1\n", "w_motoin: not a training option (did you mean w_motion?"),
+    ('lr = "fast"\n', "lr: expected a number, got 'fast'"),
+    ("window = 6.5\n", "window: expected an integer, got 6.5"),
+    ("input_norm = 1\n", "input_norm: expected true or false, got 1"),
+    ("adam_beta2 = 1.5\n", "adam_beta2: 1.5: expected a number in [0, 1)"),
+    ('fc_lr = "fast"\n', "fc_lr: 'fast': expected one of fan-in, encoder, none"),
+    ("[model]\nlayers = 2\n", "model.layers: not a model option"),
+    ("[model]\nlatent = 0\n", "model.latent: 0: expected an integer of at least 1"),
+    ("lr = \n", "not valid TOML"),
+])
+def test_config_file_errors_are_one_line_naming_the_file_and_key(text, message, tmp_path, capsys):
+    config = tmp_path / "bad.toml"
+    config.write_text(text)
+    assert main(["train", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "run"), "--config",
+                 str(config)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{config}" in err and message in err, err
+    assert not (tmp_path / "run").exists()
+    assert main(["train", "x.npz", "--out", str(tmp_path / "run"), "--config", str(tmp_path / "none.toml")]) == 2
+    assert "none.toml" in capsys.readouterr().err

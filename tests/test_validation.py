@@ -135,18 +135,20 @@ def test_resume_continues_the_best_and_force_removes_it(trained, tmp_path):
 def test_cli_validation_option(tmp_path, capsys):
     seq = twisting_limb(frames=40, rings=8, segments=6, seed=0)
     save_sequence(seq, tmp_path / "limb.npz")
+    (tmp_path / "run.toml").write_text("eval_every = 2\n[model]\nlstm_layers = 1\n")
+    (tmp_path / "as-given.toml").write_text('eval_every = 2\nwindow_fit = "none"\n[model]\nlstm_layers = 1\n')
     argv = ["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / "run"), "--iterations", "4", "--window",
-            "6", "--batch", "2", "--latent", "16", "--lstm-layers", "1", "--eval-every", "2", "--no-progress",
-            "--threads", "1"]
-    assert main(argv + ["--validation", "0.25"]) == 0
+            "6", "--batch", "2", "--latent", "16", "--no-progress", "--threads", "1"]
+    config = ["--config", str(tmp_path / "run.toml")]
+    assert main(argv + config + ["--validation", "0.25"]) == 0
     out = capsys.readouterr().out
     assert "best on the validation block: iteration" in out and "checkpoints/best" in out
-    assert main(argv + ["--validation", "0.999", "--force"]) == 2
+    assert main(argv + config + ["--validation", "0.999", "--force"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--validation 0.999" in err
     # the failed --force run removed nothing: the options are checked against the data first
     assert meshseq.load(tmp_path / "run").iteration == 4 and ckpt.best_folder(tmp_path / "run").is_dir()
-    assert main(argv + ["--window", "40", "--window-fit", "none", "--force"]) == 2
+    assert main(argv + ["--window", "40", "--config", str(tmp_path / "as-given.toml"), "--force"]) == 2
     assert "--window 40" in capsys.readouterr().err
     assert (tmp_path / "run" / "metrics.csv").is_file() and ckpt.best_folder(tmp_path / "run").is_dir()
 

@@ -162,9 +162,9 @@ def test_cli_stores_the_vertex_options(limb, tmp_path):
     seq, _ = limb
     data = tmp_path / "limb.npz"
     save_sequence(seq, data)
-    common = ["--iterations", "1", "--window", "6", "--batch", "2", "--latent", "8", "--lstm-layers", "1",
-              "--no-progress", "--eval-every", "0"]
-    assert main(["train", str(data), "--out", str(tmp_path / "v"), "--w-vertex", "0.5", "--vertex-frames", "3",
+    (tmp_path / "v.toml").write_text("eval_every = 0\nw_vertex = 0.5\nvertex_frames = 3\n[model]\nlstm_layers = 1\n")
+    common = ["--iterations", "1", "--window", "6", "--batch", "2", "--latent", "8", "--no-progress"]
+    assert main(["train", str(data), "--out", str(tmp_path / "v"), "--config", str(tmp_path / "v.toml"),
                  *common]) == 0
     meta = json.loads(next((tmp_path / "v" / "checkpoints").iterdir()).joinpath("model.json").read_text())
     assert meta["train"]["w_vertex"] == 0.5 and meta["train"]["vertex_frames"] == 3

@@ -39,10 +39,11 @@ def test_window_fit_is_checked_stored_and_the_paper_recipe_keeps_the_window(tmp_
     seq = twisting_limb(frames=40, rings=8, segments=6, seed=0)  # 32 training frames (20% held out)
     save_sequence(seq, tmp_path / "limb.npz")
 
-    def train(name, *extra):
+    def train(name, *extra, config=""):
+        (tmp_path / f"{name}.toml").write_text(f"checkpoint_every = 2\n{config}\n[model]\nlstm_layers = 1\n")
         argv = ["train", str(tmp_path / "limb.npz"), "--out", str(tmp_path / name), "--iterations", "2",
-                "--window", "32", "--batch", "8", "--latent", "8", "--lstm-layers", "1", "--no-progress",
-                "--threads", "1", "--checkpoint-every", "2", *extra]
+                "--window", "32", "--batch", "8", "--latent", "8", "--no-progress",
+                "--threads", "1", "--config", str(tmp_path / f"{name}.toml"), *extra]
         code = main(argv)
         out = capsys.readouterr()
         if code:
@@ -53,10 +54,10 @@ def test_window_fit_is_checked_stored_and_the_paper_recipe_keeps_the_window(tmp_
     stored, said = train("fit")
     assert stored["window"] == 25 and stored["window_fit"] == "batch"  # 32 - 25 + 1 = 8 starts
     assert "training on windows of 25 frames" in said
-    stored, said = train("as-given", "--window-fit", "none")
+    stored, said = train("as-given", config='window_fit = "none"')
     assert stored["window"] == 32 and "training on windows" not in said
     stored, _ = train("paper", "--recipe", "paper")
     assert stored["window"] == 32 and stored["window_fit"] == "none"
-    code, err = train("given", "--given", "25")
-    assert code == 2 and err.count("\n") == 0 and "--given 25" in err and "--window-fit none" in err
+    code, err = train("given", config="given = 25")
+    assert code == 2 and err.count("\n") == 0 and "given 25" in err and 'window_fit = "none"' in err
     assert not (tmp_path / "given").exists()

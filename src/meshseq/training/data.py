@@ -89,12 +89,12 @@ def fit_window(config: TrainConfig, splits: list[Split], log=lambda msg: None) -
     if window == config.window:
         return config
     if not config.given < window:
-        raise MeshseqError(f"--given {config.given}: the training frames hold only windows of {window} frames "
+        raise MeshseqError(f"given {config.given}: the training frames hold only windows of {window} frames "
                            f"(--window {config.window} shortened to a batch of {config.batch} starts); "
-                           "use a smaller --given or --window-fit none")
+                           'use a smaller given or window_fit = "none" (--config)')
     log(f"--window {config.window}: the training frames hold fewer than a batch ({config.batch}) of different "
-        f"windows of {config.window} frames; training on windows of {window} frames (--window-fit none keeps "
-        f"{config.window})")
+        f"windows of {config.window} frames; training on windows of {window} frames (window_fit = \"none\" in "
+        f"--config keeps {config.window})")
     return replace(config, window=window)
 
 

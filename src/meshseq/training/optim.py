@@ -107,5 +107,5 @@ def divergence(it: int, names: list[str], values: torch.Tensor, lr: float, last_
     what = f"{bad[0][0]} is {bad[0][1]}" if bad else "another process's loss is not finite"
     kept = f"the last good checkpoint is {last_checkpoint}" if last_checkpoint else "no checkpoint was written"
     return (f"training diverged at iteration {it}: {what}; stopped before updating the weights ({kept}); "
-            f"try a smaller --lr than {lr:g}")
+            f"try a smaller lr than {lr:g} (lr = ... in --config FILE.toml)")
 
