@@ -1,0 +1,57 @@
+"""docs/results.md and README.md's results table are what ``benchmarks/paper.py --markdown-only``
+makes from the stored records (docs/results/*.json), not typed by hand."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDS = ROOT / "docs" / "results"
+
+
+def _paper():
+    spec = importlib.util.spec_from_file_location("paper_benchmark", ROOT / "benchmarks" / "paper.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _generate(paper, records: Path, tmp_path: Path) -> tuple[str, str]:
+    """(results.md, README.md) as paper.py writes them from ``records``."""
+    readme = tmp_path / "README.md"
+    shutil.copy(ROOT / "README.md", readme)
+    out = tmp_path / "results.md"
+    paper.write_markdown(paper.collect(records), "auto", out, readme)
+    return out.read_text(), readme.read_text()
+
+
+def test_results_page_and_readme_table_are_regenerated_from_the_records(tmp_path):
+    paper = _paper()
+    results, readme = _generate(paper, RECORDS, tmp_path)
+    assert results == (ROOT / "docs" / "results.md").read_text(), \
+        "docs/results.md differs from the records: run python benchmarks/paper.py --markdown-only"
+    assert readme == (ROOT / "README.md").read_text(), \
+        "README.md's results table differs from the records: run python benchmarks/paper.py --markdown-only"
+    table = readme.split(paper.README_BEGIN)[1].split(paper.README_END)[0]
+    for data in paper.TARGET_SETS:
+        assert f"\n| {data} | " in table
+
+
+def test_the_table_follows_the_records(tmp_path):
+    """Doubling ours' errors in the body set's shipped record doubles its ratios in both documents."""
+    paper = _paper()
+    records = tmp_path / "records"
+    shutil.copytree(RECORDS, records)
+    name = paper.shipped_records(paper.collect(RECORDS))["bodies"]
+    summary = json.loads((records / f"{name}.json").read_text())
+    bd = summary["results"]["bd"]
+    before = paper.prediction_ratios(bd)
+    for key in ("errors", "errors_aligned"):
+        bd[key]["ours"] = {u: {h: 2 * v for h, v in per_h.items()} for u, per_h in bd[key]["ours"].items()}
+    (records / f"{name}.json").write_text(json.dumps(summary))
+    results, readme = _generate(paper, records, tmp_path)
+    row = f"| bodies | 7000 of 7000 | {2 * min(before):.2f}-{2 * max(before):.2f} "
+    assert row in results and row in readme
