@@ -303,3 +303,144 @@ def test_python_api_predict_and_complete_on_vertex_arrays(model, trained):
     assert not np.allclose(comp[0], comp[1])
     with pytest.raises(Exception, match="lengths"):
         model.complete(v[[4, 15, 30]], [10])
+
+
+# --------------------------------------------------------------------------------------------
+# batched synthesis equals the one-sample-at-a-time reference
+
+
+def _assemble_one_frame_at_a_time(model, features, anchors, decay=8):
+    """The reference of ``assemble_vertices``: one sample, a Python loop over frames."""
+    recon = model.vertices(features)
+    keys = sorted(anchors)
+    corr = {k: np.asarray(anchors[k], dtype=np.float64) - recon[k] for k in keys}
+    centroid = {k: np.asarray(anchors[k], dtype=np.float64).mean(axis=0) for k in keys}
+    out = np.empty_like(recon)
+    for t in range(len(recon)):
+        if t in anchors:
+            out[t] = anchors[t]
+            continue
+        before, after = [k for k in keys if k < t], [k for k in keys if k > t]
+        if before and after:
+            ka, kb = before[-1], after[0]
+            s = (t - ka) / (kb - ka)
+            out[t] = recon[t] + (1 - s) * corr[ka] + s * corr[kb]
+        else:
+            k = before[-1] if before else after[0]
+            fade = max(0.0, 1.0 - abs(t - k) / decay) if decay > 0 else 0.0
+            out[t] = recon[t] + centroid[k] + fade * (corr[k] - centroid[k])
+    return out
+
+
+@pytest.mark.parametrize("anchor_frames, decay", [((0, 14), 8), ((2, 6, 9), 8), ((0, 1, 2), 4), ((5,), 0)])
+def test_batched_assembly_equals_the_frame_by_frame_reference(model, trained, anchor_frames, decay):
+    from meshseq.synthesize import assemble_vertices
+
+    v = trained[2].vertices.astype(np.float64)
+    feats = model.features(v[20:35])  # (15, V, 9)
+    rng = np.random.default_rng(1)
+    many = np.stack([feats, np.clip(feats + 0.02 * rng.normal(size=feats.shape), -1, 1)]).astype(np.float32)
+    anchors = {k: v[20 + k] + 0.01 * k for k in anchor_frames}
+    batched = assemble_vertices(model, many, anchors, decay=decay)
+    assert batched.shape == many.shape[:3] + (3,)
+    for s in range(2):
+        reference = _assemble_one_frame_at_a_time(model, many[s], anchors, decay)
+        np.testing.assert_allclose(batched[s], reference, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(assemble_vertices(model, many[s], anchors, decay=decay), reference, rtol=0, atol=1e-9)
+    for k in anchor_frames:
+        assert np.array_equal(batched[:, k], np.broadcast_to(anchors[k], batched[:, k].shape))
+
+
+def test_batched_samples_equal_one_sample_runs_of_the_same_seeds(model, trained):
+    from meshseq.synthesize import complete
+
+    keys = model.features(trained[2].vertices[[10, 24]])
+    seeds = [3, 11, 42, 7]
+    for join in ("corrected", "stitch"):
+        batched = complete(model, keys[0], keys[1], 13, seeds=seeds, join=join)
+        assert batched.frames.shape == (4, 15) + keys.shape[1:]
+        for s, seed in enumerate(seeds):
+            one = complete(model, keys[0], keys[1], 13, samples=1, random_state=True, seed=seed, join=join)
+            np.testing.assert_allclose(batched.frames[s], one.frames[0], rtol=0, atol=1e-5)
+            assert batched.stitch[s] == one.stitch[0]
+            assert batched.gap[s] == pytest.approx(one.gap[0], abs=1e-5)
+    assert not np.allclose(batched.frames[0], batched.frames[1])  # the seeds differ, so do the samples
+
+
+def test_keyframe_completion_samples_equal_sequential_single_sample_completions(model, trained):
+    """``complete_keyframes`` (all samples of a gap in one roll-out, one reconstruction) against the
+    reference path: each sample completed alone, gap by gap, with the seed it always had, then
+    assembled frame by frame. Same seeds give the same samples (to 1e-5)."""
+    from meshseq.synthesize import complete, complete_keyframes
+
+    v = trained[2].vertices.astype(np.float64)
+    frames, gaps, seed, samples = [4, 15, 30], [10, 14], 2, 3
+    batched = complete_keyframes(model, v[frames], gaps, samples=samples, seed=seed)
+    assert batched.shape == (samples, 27) + v.shape[1:]
+    key_f = model.features(v[frames])
+    anchors = {0: v[4], 11: v[15], 26: v[30]}
+    for s in range(samples):
+        parts = [complete(model, key_f[i], key_f[i + 1], gap, random_state=True,
+                          seed=seed * 1000 + s * 97 + i).frames[0][int(i > 0):] for i, gap in enumerate(gaps)]
+        reference = _assemble_one_frame_at_a_time(model, np.concatenate(parts), anchors)
+        np.testing.assert_allclose(batched[s], reference, rtol=0, atol=1e-5)
+    # one sample: the trained initial states, as a one-sample completion always had
+    one = complete_keyframes(model, v[frames], gaps, samples=1, seed=seed)
+    parts = [complete(model, key_f[i], key_f[i + 1], gap).frames[0][int(i > 0):] for i, gap in enumerate(gaps)]
+    np.testing.assert_allclose(one[0], _assemble_one_frame_at_a_time(model, np.concatenate(parts), anchors),
+                               rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("n", [2, 3, 9])
+def test_joining_all_pairs_at_once_equals_joining_each_pair(n):
+    from meshseq.synthesize import corrected_crossfade, join_chains, stitch_chains
+
+    rng = np.random.default_rng(n)
+    forward = rng.normal(size=(3, n, 5, 9)).astype(np.float32)
+    backward = rng.normal(size=(3, n, 5, 9)).astype(np.float32)
+    for join in ("corrected", "stitch"):
+        frames, meets, gaps = join_chains(forward, backward, join)
+        for p in range(3):
+            stitched, meet, gap = stitch_chains(forward[p], backward[p])
+            expect = corrected_crossfade(forward[p], backward[p]) if join == "corrected" else stitched
+            np.testing.assert_allclose(frames[p], expect, rtol=0, atol=1e-5)
+            assert meets[p] == meet and gaps[p] == pytest.approx(gap, rel=1e-5)
+
+
+def test_batched_completion_errors_equal_the_per_start_reference(model, trained):
+    """``evaluate.completion_errors`` runs every start's chains (and every start's samples) as one
+    roll-out; the reference completes each start alone with ``complete``, as it always did."""
+    from meshseq import evaluate
+    from meshseq.synthesize import complete
+
+    v = trained[2].vertices.astype(np.float64)
+    feats = model.features(v)
+    lo, hi, gap, samples, seed = 40, 60, 4, 3, 1
+    got = evaluate.completion_errors(model, v, feats, lo, hi, [gap], ["ours", "stitch", "linear"],
+                                     samples=samples, seed=seed, max_starts=4)[str(gap)]
+    starts = np.arange(lo, hi - gap - 1)
+    starts = starts[np.linspace(0, len(starts) - 1, 4).astype(int)]
+    assert got["starts"] == 4
+    for method, join in (("ours", "corrected"), ("stitch", "stitch")):
+        errs = []
+        for s in starts:
+            f = complete(model, feats[s], feats[s + gap + 1], gap, join=join).frames[0]
+            verts = _assemble_one_frame_at_a_time(model, f, {0: v[s], gap + 1: v[s + gap + 1]})
+            errs.append(per_vertex_error(verts[1:-1], v[s + 1:s + gap + 1]).mean() / evaluate.UNITS)
+        assert got[method] == pytest.approx(np.mean(errs), rel=1e-6, abs=1e-3)  # abs: 1e-7 data units
+    diversity = []
+    for s in starts:
+        many = complete(model, feats[s], feats[s + gap + 1], gap, samples=samples, seed=seed + int(s))
+        anchors = {0: v[s], gap + 1: v[s + gap + 1]}
+        verts = np.stack([_assemble_one_frame_at_a_time(model, f, anchors)[1:-1] for f in many.frames])
+        diversity.append(baselines.pairwise_diversity(verts) / evaluate.UNITS)
+    assert got["diversity"] == pytest.approx(np.mean(diversity), rel=1e-6, abs=1e-3)  # abs: 1e-7 data units
+
+
+def test_synthesis_commands_list_the_library_methods_without_importing_it():
+    from meshseq import synthesize
+    from meshseq.cli import synth_cmds
+
+    assert synth_cmds.PREDICTION_METHODS == baselines.PREDICTION_METHODS
+    assert synth_cmds.COMPLETION_METHODS == baselines.COMPLETION_METHODS
+    assert set(synthesize.METHOD_JOINS) <= set(synth_cmds.COMPLETION_METHODS)

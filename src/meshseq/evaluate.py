@@ -17,12 +17,14 @@ Functions take arrays and a loaded ``meshseq.api.Model``; they print nothing.
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from meshseq import baselines
 from meshseq.align import per_vertex_error
 from meshseq.errors import MeshseqError
 from meshseq.plots import feature_change as relative_change
-from meshseq.synthesize import METHOD_JOINS, assemble_vertices, complete, complete_cma, predict
+from meshseq.synthesize import (METHOD_JOINS, assemble_vertices, chain_states, complete_cma, join_chain_states,
+                                join_chains, predict, run_chains)
 
 UNITS = 1e-4  # errors are reported in the data's units x 1e-4 (paper's tables)
 
@@ -168,36 +170,64 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
             continue
         starts = starts[np.linspace(0, len(starts) - 1, min(max_starts, len(starts))).astype(int)]
         res: dict = {"starts": int(len(starts))}
-        errs = {m: [] for m in methods}
-        diversity = []
-        for s in starts:  # a handful of gaps; each completion is batched inside
-            a, b = s, s + gap + 1
-            truth = vertices[a:b + 1]
-            anchors = {0: vertices[a], gap + 1: vertices[b]}
-            for m in methods:
+        frames = _completion_features(model, feats, starts, gap, methods, seed, cma_evals, cma_seconds)
+        for m in methods:
+            errs = []
+            for p, a in enumerate(starts):
+                b = a + gap + 1
                 if m == "linear_vertices":  # straight lines in vertex space: no features involved
                     verts = baselines.linear_interpolation(vertices[a], vertices[b], gap)
-                    errs[m].append(per_vertex_error(verts[1:-1], truth[1:-1]).mean() / UNITS)
-                    continue
-                if m in METHOD_JOINS:
-                    f = complete(model, feats[a], feats[b], gap, join=METHOD_JOINS[m]).frames[0]
-                elif m == "cma":
-                    f = complete_cma(model, feats[a], feats[b], gap, max_evals=cma_evals,
-                                     max_seconds=cma_seconds, seed=seed).frames[0]
-                elif m == "linear":
-                    f = baselines.linear_interpolation(feats[a], feats[b], gap)
                 else:
-                    raise MeshseqError(f"unknown completion method {m!r}; expected one of "
-                                       f"{baselines.COMPLETION_METHODS}")
-                verts = assemble_vertices(model, f, anchors)
-                errs[m].append(per_vertex_error(verts[1:-1], truth[1:-1]).mean() / UNITS)
-            if samples > 1:
-                many = complete(model, feats[a], feats[b], gap, samples=samples, seed=seed + int(s))
-                verts = np.stack([assemble_vertices(model, f, anchors)[1:-1] for f in many.frames])
-                diversity.append(baselines.pairwise_diversity(verts) / UNITS)
-        for m in methods:
-            res[m] = float(np.mean(errs[m]))
-        if diversity:
-            res["diversity"] = float(np.mean(diversity))
+                    verts = assemble_vertices(model, frames[m][p], {0: vertices[a], gap + 1: vertices[b]})
+                errs.append(per_vertex_error(verts[1:-1], vertices[a + 1:b]).mean() / UNITS)
+            res[m] = float(np.mean(errs))
+        if samples > 1:
+            res["diversity"] = _completion_diversity(model, vertices, feats, starts, gap, samples, seed)
         out[str(gap)] = res
     return out
+
+
+def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int, methods: list[str], seed: int,
+                         cma_evals: int, cma_seconds: float) -> dict[str, np.ndarray]:
+    """Scaled features ``(P, gap + 2, V, 9)`` of each feature-space method's completion of the gaps
+    ``feats[s] .. feats[s + gap + 1]`` for the P ``starts``. The chains of every start run as one
+    roll-out from the trained initial states (what ``complete`` does for one gap), joined each way."""
+    keys_a, keys_b = feats[starts], feats[starts + gap + 1]
+    out, chains = {}, None
+    for m in methods:
+        if m == "linear_vertices":
+            continue
+        if m in METHOD_JOINS:
+            if chains is None:
+                state = model.net.initial_state(len(starts), len(starts), model.device)
+                chains = run_chains(model, keys_a, keys_b, gap, state)
+            f = join_chains(*chains, METHOD_JOINS[m])[0]
+            f[:, 0], f[:, -1] = keys_a, keys_b
+        elif m == "cma":  # one optimisation per gap (each batches its population)
+            f = np.stack([complete_cma(model, a, b, gap, max_evals=cma_evals, max_seconds=cma_seconds,
+                                       seed=seed).frames[0] for a, b in zip(keys_a, keys_b)])
+        elif m == "linear":
+            f = np.stack([baselines.linear_interpolation(a, b, gap) for a, b in zip(keys_a, keys_b)])
+        else:
+            raise MeshseqError(f"unknown completion method {m!r}; expected one of {baselines.COMPLETION_METHODS}")
+        out[m] = f
+    return out
+
+
+def _completion_diversity(model, vertices: np.ndarray, feats: np.ndarray, starts: np.ndarray, gap: int,
+                          samples: int, seed: int) -> float:
+    """Mean pairwise diversity (x 1e-4) of ``samples`` random-state completions per start: start
+    ``s`` draws the states ``complete(..., samples=samples, seed=seed + s)`` draws; all starts'
+    chains run as one roll-out."""
+    state = join_chain_states([chain_states(model, samples, True, torch.Generator().manual_seed(seed + int(s)))
+                               for s in starts])
+    rows = np.repeat(starts, samples)
+    frames = join_chains(*run_chains(model, feats[rows], feats[rows + gap + 1], gap, state), "corrected")[0]
+    frames = frames.reshape(len(starts), samples, *frames.shape[1:])
+    diversity = []
+    for p, a in enumerate(starts):
+        f = frames[p]
+        f[:, 0], f[:, -1] = feats[a], feats[a + gap + 1]
+        verts = assemble_vertices(model, f, {0: vertices[a], gap + 1: vertices[a + gap + 1]})[:, 1:-1]
+        diversity.append(baselines.pairwise_diversity(verts) / UNITS)
+    return float(np.mean(diversity))

@@ -107,6 +107,69 @@ def chain_states(model, samples: int, random_state: bool, generator: torch.Gener
     return h, c
 
 
+def join_chain_states(states: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Several groups' initial states ``(h, c)``, each ``(K, 2 S_i, L)`` (``S_i`` forward rows, then
+    ``S_i`` backward rows), as one batch ``(K, 2 sum S_i, L)``: every group's forward rows, then
+    every group's backward rows, groups in order (the layout ``run_chains`` takes)."""
+    def rows(t: torch.Tensor, backward: bool) -> torch.Tensor:
+        half = t.shape[1] // 2
+        return t[:, half:] if backward else t[:, :half]
+
+    return tuple(torch.cat([rows(st[i], back) for back in (False, True) for st in states], dim=1)
+                 for i in range(2))
+
+
+def seeded_chain_states(model, seeds: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random initial states of ``len(seeds)`` completions as one batch: completion ``i``'s are the
+    ones a one-sample ``complete(..., random_state=True, seed=seeds[i])`` draws, so a batched
+    roll-out of them gives what the one-sample calls give (to float32 rounding)."""
+    return join_chain_states([chain_states(model, 1, True, torch.Generator().manual_seed(int(s))) for s in seeds])
+
+
+def run_chains(model, keys_a, keys_b, n_between: int, state) -> tuple[np.ndarray, np.ndarray]:
+    """The forward chains from ``keys_a`` and the backward chains from ``keys_b`` as ONE roll-out
+    (the weights read once a step for all of them).
+
+    Args:
+        keys_a, keys_b: ``(P, V, 9)`` scaled features, one pair of keys per completion.
+        state: ``(h, c)``, each ``(K, 2P, L)``: P forward rows, then P backward rows.
+    Returns:
+        ``(forward, backward)``, each ``(P, n_between + 2, V, 9)``; ``forward[p, 0]`` is
+        ``keys_a[p]``, ``backward[p, 0]`` is ``keys_b[p]`` (the backward chain's own order).
+    """
+    a, b = _tensor(model, keys_a), _tensor(model, keys_b)
+    pairs = a.shape[0]
+    with torch.no_grad():
+        frames, _, _, _ = model.net.rollout(torch.cat([a, b]), n_between + 1, state, n_forward=pairs)
+    frames = frames.cpu().numpy()
+    return frames[:pairs], frames[pairs:]
+
+
+def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int = 2):
+    """``(frames (P, n, V, C), meeting frames (P,), gaps (P,))`` of P chain pairs ``(P, n, V, C)``
+    (``run_chains``) joined by ``join``, all pairs at once: what ``corrected_crossfade`` or
+    ``stitch_chains`` give pair by pair; ``meeting``/``gap``: where the raw chains agree best
+    (``stitch_chains``' choice), whatever the join."""
+    pairs, n = forward.shape[:2]
+    back = backward[:, ::-1]  # forward time order: back[:, -1] = key b
+    diff = forward - back
+    dist = np.sqrt(np.einsum("pnvc,pnvc->pn", diff, diff) / np.prod(forward.shape[2:]))  # (P, n) RMS
+    inner = np.arange(1, n - 1) if n > 2 else np.arange(n)
+    meets = inner[np.argmin(dist[:, inner], axis=1)]
+    gaps = dist[np.arange(pairs), meets]
+    if join == "stitch":
+        frames = np.stack([stitch_chains(f, b, blend)[0] for f, b in zip(forward, backward)])
+        return frames, meets, gaps.astype(np.float64)
+    # corrected_crossfade in one expression: (1 - r) F + r B - r (1 - r) D, with D the sum of both
+    # chains' misses of their far keys (F[-1] - key b) + (B[0] - key a)
+    ramp = np.linspace(0.0, 1.0, n).astype(forward.dtype)[None, :, None, None]
+    miss = (forward[:, -1] - backward[:, 0]) + (backward[:, -1] - forward[:, 0])  # (P, V, C)
+    frames = forward * (1 - ramp)
+    frames += back * ramp
+    frames -= (ramp * (1 - ramp)) * miss[:, None]
+    return frames, meets, gaps.astype(np.float64)
+
+
 def stitch_chains(forward: np.ndarray, backward: np.ndarray, blend: int = 2) -> tuple[np.ndarray, int, float]:
     """Join a forward chain and a backward chain that span the same frames.
 
@@ -165,8 +228,11 @@ METHOD_JOINS = {"ours": "corrected", "stitch": "stitch"}
 
 
 def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state: bool | None = None,
-             seed: int | None = None, blend: int = 2, join: str = "corrected") -> Completion:
+             seed: int | None = None, blend: int = 2, join: str = "corrected",
+             seeds: list[int] | None = None) -> Completion:
     """Fill ``n_between`` frames between two keys with the two chains, joined by ``join``.
+
+    All samples' chains run as one batched roll-out (``run_chains``).
 
     Args:
         key_a, key_b: ``(V, 9)`` scaled features of the keys.
@@ -174,7 +240,9 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
         samples: how many completions (each from its own random initial states).
         random_state: draw initial states from U(-0.1, 0.1) (default: when ``samples > 1``);
             otherwise the trained states +0.1 (forward) and -0.1 (backward).
-        seed: seed of those random states.
+        seed: seed of those random states (one generator for all samples).
+        seeds: instead of ``samples`` and ``seed``: one seed per sample, sample ``i`` drawing the
+            random states a one-sample call with ``seed=seeds[i]`` draws (``seeded_chain_states``).
         join: ``corrected`` (``corrected_crossfade``) or ``stitch`` (``stitch_chains`` with
             ``blend``); ``stitch`` / ``gap`` of the result are the raw chains' meeting frame and
             distance either way.
@@ -183,27 +251,18 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
         raise MeshseqError(f"unknown join {join!r}; expected one of {', '.join(JOINS)}")
     if n_between < 0:
         raise MeshseqError(f"frames between keys must be >= 0, got {n_between}")
-    random_state = samples > 1 if random_state is None else random_state
-    a, b = _tensor(model, key_a), _tensor(model, key_b)
-    n = n_between + 2
-    gen = torch.Generator().manual_seed(int(seed)) if seed is not None else None
-    state = chain_states(model, samples, random_state, gen)
-    first = torch.cat([a[None].expand(samples, -1, -1), b[None].expand(samples, -1, -1)])
-    with torch.no_grad():
-        frames, _, _, _ = model.net.rollout(first, n - 1, state, n_forward=samples)
-    frames = frames.cpu().numpy()
-    out, meets, gaps = [], [], []
-    for s in range(samples):  # per sample: a few array ops, not per vertex
-        f, meet, gap = stitch_chains(frames[s], frames[samples + s], blend)
-        if join == "corrected":
-            f = corrected_crossfade(frames[s], frames[samples + s])
-        out.append(f)
-        meets.append(meet)
-        gaps.append(gap)
-    frames_out = np.stack(out)
-    frames_out[:, 0] = np.asarray(key_a)
-    frames_out[:, -1] = np.asarray(key_b)
-    return Completion(frames_out, np.array(meets), np.array(gaps))
+    if seeds is not None:
+        samples, state = len(seeds), seeded_chain_states(model, seeds)
+    else:
+        random_state = samples > 1 if random_state is None else random_state
+        gen = torch.Generator().manual_seed(int(seed)) if seed is not None else None
+        state = chain_states(model, samples, random_state, gen)
+    keys_a, keys_b = (_tensor(model, k)[None].expand(samples, -1, -1) for k in (key_a, key_b))
+    forward, backward = run_chains(model, keys_a, keys_b, n_between, state)
+    frames, meets, gaps = join_chains(forward, backward, join, blend)
+    frames[:, 0] = np.asarray(key_a)
+    frames[:, -1] = np.asarray(key_b)
+    return Completion(frames, meets, gaps)
 
 
 def complete_cma(model, key_a, key_b, n_between: int, max_evals: int = 400, max_seconds: float = 60.0,
@@ -276,23 +335,20 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
         parts = [linear_interpolation(keys[i], keys[i + 1], gap)[int(i > 0):] for i, gap in enumerate(gaps)]
         return np.concatenate(parts)[None]
     key_f = model.features(keys)
-    out = []
-    for s in range(samples):
-        parts, anchors, offset = [], {0: keys[0]}, 0
-        for i, gap in enumerate(gaps):  # per gap; each completion is batched inside
-            if method in METHOD_JOINS:
-                f = complete(model, key_f[i], key_f[i + 1], gap, random_state=samples > 1,
-                             seed=seed * 1000 + s * 97 + i, join=METHOD_JOINS[method]).frames[0]
-            elif method == "cma":
-                f = complete_cma(model, key_f[i], key_f[i + 1], gap, max_evals=cma_evals,
-                                 max_seconds=cma_seconds, seed=seed + i).frames[0]
-            else:
-                f = linear_interpolation(key_f[i], key_f[i + 1], gap)
-            parts.append(f if i == 0 else f[1:])
-            offset += gap + 1
-            anchors[offset] = keys[i + 1]
-        out.append(assemble_vertices(model, np.concatenate(parts), anchors))
-    return np.stack(out)
+    parts, anchors, offset = [], {0: keys[0]}, 0
+    for i, gap in enumerate(gaps):  # per gap; all samples of a gap run as one batched roll-out
+        if method in METHOD_JOINS:
+            seeds = [seed * 1000 + s * 97 + i for s in range(samples)] if samples > 1 else None
+            f = complete(model, key_f[i], key_f[i + 1], gap, seeds=seeds, join=METHOD_JOINS[method]).frames
+        elif method == "cma":
+            f = complete_cma(model, key_f[i], key_f[i + 1], gap, max_evals=cma_evals,
+                             max_seconds=cma_seconds, seed=seed + i).frames
+        else:
+            f = linear_interpolation(key_f[i], key_f[i + 1], gap)[None]
+        parts.append(f if i == 0 else f[:, 1:])  # (samples, frames, V, 9)
+        offset += gap + 1
+        anchors[offset] = keys[i + 1]
+    return assemble_vertices(model, np.concatenate(parts, axis=1), anchors)
 
 
 # --------------------------------------------------------------------------------------------
@@ -300,35 +356,58 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
 
 
 def assemble_vertices(model, features: np.ndarray, anchors: dict[int, np.ndarray], decay: int = 8) -> np.ndarray:
-    """Vertices ``(T, V, 3)`` from scaled features ``(T, V, 9)`` that pass exactly through anchors.
+    """Vertices ``(T, V, 3)`` from scaled features ``(T, V, 9)`` that pass exactly through anchors;
+    or, for S samples ``(S, T, V, 9)`` (one reconstruction of all ``S T`` frames), ``(S, T, V, 3)``.
 
     ``anchors`` maps frame index -> true vertices ``(V, 3)`` (given frames or keyframes); anchor
     frames are output as given. Every other frame is the reconstruction of its features (centred)
-    plus a correction interpolated from the anchors around it: each anchor contributes its
-    centroid and its reconstruction residual (true minus reconstructed vertices), linearly
-    between two anchors and fading over ``decay`` frames after the last one (a prediction), so
-    the motion continues from the last given frame without a jump.
+    plus a correction interpolated from the anchors around it (``anchor_weights``): each anchor
+    contributes its centroid and its reconstruction residual (true minus reconstructed vertices),
+    linearly between two anchors and fading over ``decay`` frames after the last one (a
+    prediction), so the motion continues from the last given frame without a jump.
     """
-    recon = model.vertices(features)  # (T, V, 3) centred
+    f = np.asarray(features)
+    batched = f.ndim == 4
+    f = f if batched else f[None]
+    recon = model.vertices(f.reshape(-1, *f.shape[2:])).reshape(f.shape[:3] + (3,))  # (S, T, V, 3) centred
+    out = pass_through_anchors(recon, anchors, decay)
+    return out if batched else out[0]
+
+
+def anchor_weights(n_frames: int, keys: list[int], decay: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """``(w_corr, w_centroid)``, each ``(T, A)``: frame ``t`` gets ``sum_k w_corr[t, k] corr_k +
+    w_centroid[t, k] centroid_k`` added (``corr_k`` = anchor k's vertices minus their reconstruction;
+    ``keys`` sorted anchor frames). Between two anchors ``ka < t < kb``: ``corr`` linearly,
+    ``(1 - s, s)`` with ``s = (t - ka) / (kb - ka)``; outside them, nearest anchor k:
+    ``centroid_k + fade (corr_k - centroid_k)``, ``fade = max(0, 1 - |t - k| / decay)``."""
+    t = np.arange(n_frames)[:, None]
+    k = np.asarray(keys)[None, :]
+    w_corr = np.zeros((n_frames, len(keys)))
+    w_cent = np.zeros((n_frames, len(keys)))
+    after = np.searchsorted(keys, t[:, 0], side="right")  # index of the first anchor > t
+    inside = (after > 0) & (after < len(keys))
+    rows = np.flatnonzero(inside)
+    ka, kb = k[0, after[rows] - 1], k[0, after[rows]]
+    s = (rows - ka) / (kb - ka)
+    w_corr[rows, after[rows] - 1] = 1 - s
+    w_corr[rows, after[rows]] += s  # (t == ka: s = 0, the anchor itself)
+    rows = np.flatnonzero(~inside)
+    near = np.where(after[rows] == 0, 0, len(keys) - 1)
+    dist = np.abs(rows - k[0, near])
+    fade = np.maximum(0.0, 1.0 - dist / decay) if decay > 0 else np.zeros(len(rows))
+    w_corr[rows, near] = fade
+    w_cent[rows, near] = 1.0 - fade
+    return w_corr, w_cent
+
+
+def pass_through_anchors(recon: np.ndarray, anchors: dict[int, np.ndarray], decay: int = 8) -> np.ndarray:
+    """Reconstructions ``(S, T, V, 3)`` corrected to pass through ``anchors`` (``assemble_vertices``)."""
     keys = sorted(anchors)
     if not keys:
         return recon
-    corr = {k: np.asarray(anchors[k], dtype=np.float64) - recon[k] for k in keys}  # centroid + residual
-    centroid = {k: np.asarray(anchors[k], dtype=np.float64).mean(axis=0) for k in keys}
-    out = np.empty_like(recon)
-    for t in range(len(recon)):  # per frame, vectorised over vertices
-        if t in anchors:
-            out[t] = anchors[t]
-            continue
-        after = [k for k in keys if k > t]
-        before = [k for k in keys if k < t]
-        if before and after:
-            ka, kb = before[-1], after[0]
-            s = (t - ka) / (kb - ka)
-            out[t] = recon[t] + (1 - s) * corr[ka] + s * corr[kb]
-        else:
-            k = before[-1] if before else after[0]
-            fade = max(0.0, 1.0 - abs(t - k) / decay) if decay > 0 else 0.0
-            residual = corr[k] - centroid[k]
-            out[t] = recon[t] + centroid[k] + fade * residual
+    true = np.stack([np.asarray(anchors[k], dtype=np.float64) for k in keys])  # (A, V, 3)
+    corr = true[None] - recon[:, keys]  # (S, A, V, 3): centroid + residual
+    w_corr, w_cent = anchor_weights(recon.shape[1], keys, decay)
+    out = recon + np.einsum("ta,savd->stvd", w_corr, corr) + (w_cent @ true.mean(axis=1))[None, :, None]
+    out[:, keys] = true[None]
     return out

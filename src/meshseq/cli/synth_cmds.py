@@ -1,19 +1,25 @@
-"""meshseq commands of synthesis and evaluation: ``predict``, ``complete``, ``evaluate``."""
+"""meshseq commands of synthesis and evaluation: ``predict``, ``complete``, ``evaluate``.
+
+Nothing heavy is imported at module level or by ``register``: each command imports what it uses
+(numpy, torch through the model, ...), so ``--help`` answers at once and a command pays only for
+its own imports.
+"""
 
 from __future__ import annotations
 
 import warnings
 from pathlib import Path
 
-import numpy as np
-
 from meshseq.errors import MeshseqError, MeshseqWarning
+
+#: ``meshseq.baselines.PREDICTION_METHODS`` and ``COMPLETION_METHODS``, kept here so that building
+#: the parser does not import torch (tests/test_synthesis.py checks that they match)
+PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
+COMPLETION_METHODS = ("ours", "stitch", "cma", "linear", "linear_vertices")
 
 
 def register(sub) -> None:
     """Add ``predict``, ``complete`` and ``evaluate`` to the ``meshseq`` parser's subparsers."""
-    from meshseq.baselines import COMPLETION_METHODS, PREDICTION_METHODS
-
     p = sub.add_parser("predict", help="continue a motion from given frames",
                        description="Feed U given frames of DATA (from --start) to a trained model and "
                        "generate N more. Writes the given frames followed by the generated ones; the "
@@ -113,6 +119,8 @@ def _load(args):
 def _vae(model, run: str, seq, feats: np.ndarray, exclude: tuple[int, int], iterations: int):
     """The VAE baseline of this run: loaded from RUN/baselines/vae, else trained on the run's
     training frames of this data set (all frames outside ``exclude``) and saved there."""
+    import numpy as np
+
     from meshseq import baselines
     from meshseq.checkpoint import resolve
     from meshseq.mesh import Topology
@@ -171,6 +179,8 @@ def _write(seq_vertices: np.ndarray, faces: np.ndarray, name: str, args, fps=Non
 
 
 def cmd_predict(args) -> int:
+    import numpy as np
+
     from meshseq import baselines, synthesize
     from meshseq.io import check_output
 
@@ -217,6 +227,8 @@ def _recorded_heldout(model, seq) -> tuple[int, int] | None:
 
 
 def cmd_complete(args) -> int:
+    import numpy as np
+
     from meshseq import baselines, synthesize
     from meshseq.io import MeshSequence, atomic_output, check_output, json_text, save_sequence
 
@@ -262,6 +274,8 @@ def cmd_complete(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
+    import numpy as np
+
     from meshseq import baselines, evaluate
     from meshseq.io import atomic_output, check_output, json_text
     from meshseq.mesh import bounding_box_diagonal
@@ -354,6 +368,8 @@ def _print_tables(result: dict, horizons: list[int]) -> None:
 
 
 def _plots(result: dict, folder: str, force: bool) -> None:
+    import numpy as np
+
     from meshseq import plots
     from meshseq.io import atomic_output
 

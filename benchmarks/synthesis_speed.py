@@ -1,0 +1,173 @@
+"""Benchmark: synthesis speed on CPU (diverse completion), against this machine's floors.
+
+For models of the paper's size (latent 128, 3 LSTM layers, 3 conv layers; random weights: the
+speed does not depend on the values) on twisting-limb meshes of about 3,000 and 10,000 vertices,
+and for 1 and 8 samples, prints:
+
+- the model step: ms per roll-out step of a completion (K forward + K backward chains, one batch)
+  and per generated frame of one sample, beside its floor: the bytes of the weights one step reads
+  (the big FC twice: encoder and tied decoder, plus the LSTM and head) over the machine's copy
+  rate measured in the same run (a 256 MB numpy copy);
+- reconstruction: ms per generated frame of ``assemble_vertices`` (features -> vertices through
+  the keys) for all K samples, beside ``acap.Reconstructor.solve``'s time per frame on the same
+  mesh measured in the same run (benchmarks/acap_speed.py's reconstruct figure);
+- the whole completion of a 30-frame gap through the Python API (``Model.complete``), warm.
+
+Targets (2 cores): step within 2x its floor at 1 sample; at 8 samples within 1.5x of the 1-sample
+time per step; 30-frame gap, 8 samples, 10k vertices: at most 2 s through the API.
+
+``--command RUN DATA`` also times ``meshseq complete RUN DATA --keyframes 0,31 --samples 8`` as a
+command (start-up and loading included; target 4 s on crane).
+
+    python benchmarks/synthesis_speed.py [--repeat 5] [--command /tmp/crane_run crane.npz]
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from meshseq.acap import Scaling, extract
+from meshseq.api import Model
+from meshseq.data.synthetic import twisting_limb
+from meshseq.mesh import Topology
+from meshseq.model import BDLSTM, ModelConfig
+from meshseq import synthesize
+
+MESHES = {"3k": (75, 40), "10k": (125, 80)}  # rings, segments: 3,002 and 10,002 vertices
+GAP = 30
+
+
+def best_of(repeat: int, fn):
+    times, result = [], None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - t0)
+    return min(times), result
+
+
+def machine_rates(repeat: int) -> tuple[float, float]:
+    """(float32 matmul GFLOP/s on torch's threads, streaming copy GB/s counting read + write)."""
+    n = 2048
+    a, b = torch.rand(n, n), torch.rand(n, n)
+    t, _ = best_of(repeat, lambda: a @ b)
+    gflops = 2 * n**3 / t / 1e9
+    x = np.random.rand(1 << 25)  # 256 MB
+    y = np.empty_like(x)
+    t, _ = best_of(repeat, lambda: np.copyto(y, x))
+    return gflops, 2 * x.nbytes / t / 1e9
+
+
+def random_model(rings: int, segments: int) -> tuple[Model, np.ndarray]:
+    """A paper-sized model with random weights on a twisting limb, and the limb's vertices (T, V, 3)."""
+    seq = twisting_limb(frames=40, rings=rings, segments=segments)
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    torch.manual_seed(0)
+    config = ModelConfig(n_vertices=seq.n_vertices, latent=128, lstm_layers=3, conv_layers=3,
+                         input_norm=True, logvar_max=0.0)
+    net = BDLSTM(config, topo)
+    feats = extract(seq.vertices, seq.faces)
+    scaling = Scaling.fit(feats)
+    net.set_input_norm(scaling.apply(feats))
+    return Model(net, {"scaling": scaling.to_dict()}, seq.vertices[0], seq.faces, "cpu"), seq.vertices
+
+
+def step_bytes(model: Model) -> int:
+    """Bytes of the weights one step reads: the big FC twice (encoder, tied decoder), the rest once."""
+    fc = model.net.fc.weight
+    rest = sum(p.numel() * p.element_size() for n, p in model.net.named_parameters() if n != "fc.weight")
+    return 2 * fc.numel() * fc.element_size() + rest
+
+
+def time_steps(model: Model, keys: np.ndarray, samples: int, repeat: int) -> float:
+    """Seconds per roll-out step of a completion's chains (K forward + K backward rows)."""
+    a, b = (torch.as_tensor(k, dtype=torch.float32) for k in keys)
+    first = torch.cat([a[None].expand(samples, -1, -1), b[None].expand(samples, -1, -1)])
+    state = model.net.initial_state(samples, samples)
+    steps = GAP + 1
+
+    def run():
+        with torch.no_grad():
+            return model.net.rollout(first, steps, state, n_forward=samples)
+
+    t, _ = best_of(repeat, run)
+    return t / steps
+
+
+def time_reconstruction(model: Model, feats: np.ndarray, verts: np.ndarray, samples: int, repeat: int) -> float:
+    """Seconds to turn ``samples`` completions (GAP + 2 frames each) into vertices through the keys."""
+    n = GAP + 2
+    f = np.stack([feats[:n]] * samples)  # (K, n, V, 9)
+    anchors = {0: verts[0], n - 1: verts[n - 1]}
+    t, _ = best_of(repeat, lambda: synthesize.assemble_vertices(model, f, anchors))  # one batched call
+    return t
+
+
+def time_command(run: str, data: str, repeat: int) -> float:
+    with tempfile.TemporaryDirectory() as tmp:
+        times = []
+        for i in range(repeat):
+            out = Path(tmp) / f"out{i}"
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "meshseq", "complete", run, data, "--keyframes", f"0,{GAP + 1}",
+                            "--samples", "8", "-o", str(out)], check=True, capture_output=True)
+            times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--meshes", default=",".join(MESHES), help="which of 3k,10k")
+    ap.add_argument("--command", nargs=2, metavar=("RUN", "DATA"), default=None,
+                    help="also time `meshseq complete RUN DATA --samples 8` of a 30-frame gap")
+    args = ap.parse_args()
+    gflops, gbs = machine_rates(args.repeat)
+    print(f"machine: float32 matmul {gflops:.1f} GFLOP/s, copy {gbs:.1f} GB/s (read + write); "
+          f"torch threads {torch.get_num_threads()}")
+    targets = []
+    for name in args.meshes.split(","):
+        model, verts = random_model(*MESHES[name])
+        V = model.config.n_vertices
+        feats = model.features(verts)
+        keys = feats[[0, GAP + 1]]
+        floor = step_bytes(model) / (gbs * 1e9)
+        t_solve, _ = best_of(args.repeat, lambda: model.vertices(feats))
+        solve_frame = t_solve / len(feats)
+        print(f"{name} ({V} vertices): step weights {step_bytes(model) / 1e6:.1f} MB -> floor {floor * 1e3:.2f} ms; "
+              f"Reconstructor.solve {solve_frame * 1e3:.2f} ms/frame ({len(feats)} frames, acap_speed's figure)")
+        one_step = None
+        for samples in (1, 8):
+            step = time_steps(model, keys, samples, args.repeat)
+            one_step = one_step or step
+            rec_frame = time_reconstruction(model, feats, verts, samples, args.repeat) / (samples * (GAP + 2))
+            t_api, _ = best_of(max(2, args.repeat // 2),
+                               lambda: model.complete(verts[[0, GAP + 1]], GAP, samples=samples, seed=0))
+            print(f"  K={samples}: step {step * 1e3:6.2f} ms ({step / floor:4.2f}x floor, "
+                  f"{step / one_step:4.2f}x K=1), {step / samples * 1e3:5.2f} ms per generated frame | "
+                  f"reconstruction {rec_frame * 1e3:5.2f} ms per generated frame ({rec_frame / solve_frame:4.2f}x solve) | "
+                  f"API complete {GAP}-frame gap {t_api:5.2f} s")
+            if samples == 1:
+                targets.append((f"{name}: step at K=1 within 2x its floor", step / floor, 2.0))
+            else:
+                targets.append((f"{name}: step at K=8 within 1.5x of K=1", step / one_step, 1.5))
+                if name == "10k":
+                    targets.append((f"{name}: API completion of a {GAP}-frame gap, 8 samples, s", t_api, 2.0))
+    if args.command:
+        t = time_command(*args.command, max(1, args.repeat // 2))
+        print(f"command: meshseq complete {args.command[0]} {args.command[1]} --samples 8, {GAP}-frame gap: {t:.2f} s")
+        targets.append(("command, s", t, 4.0))
+    for what, value, limit in targets:
+        print(f"target {what}: {value:.2f} (<= {limit}) {'met' if value <= limit else 'NOT met'}")
+
+
+if __name__ == "__main__":
+    main()
