@@ -301,7 +301,7 @@ SCHEMA_CASES = {
                           "scaling: channel 0: maximum"),
     "scaling with 8 channels": (_edit_json(M, lambda m: m["scaling"].update(minimum=m["scaling"]["minimum"][:8])), M, "scaling: expected 9"),
     "scaling mode": (_edit_json(M, _set(["scaling", "mode"], "log")), M, "scaling.mode"),
-    "negative lr in train": (_edit_json(M, _set(["train", "lr"], -1e-3)), M, "train: --lr -0.001"),
+    "negative lr in train": (_edit_json(M, _set(["train", "lr"], -1e-3)), M, "train: lr -0.001"),
     "window a float": (_edit_json(M, _set(["train", "window"], 6.5)), M, "train.window: expected an integer"),
     "topology missing": (_edit_json(M, _delete(["topology"])), M, "topology: missing"),
     "vertex count differs": (_edit_json(M, _set(["model", "n_vertices"], 7)), M, "topology"),

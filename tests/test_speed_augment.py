@@ -68,9 +68,9 @@ def test_training_windows_interpolate_the_frames_and_are_the_plain_windows_when_
 
 
 def test_speed_augment_option_is_checked_and_stored(tmp_path, capsys):
-    with pytest.raises(MeshseqError, match="--speed-augment 0.5"):
+    with pytest.raises(MeshseqError, match="speed_augment 0.5"):
         TrainConfig(speed_augment=0.5)
-    with pytest.raises(MeshseqError, match="--speed-augment nan"):
+    with pytest.raises(MeshseqError, match="speed_augment nan"):
         TrainConfig(speed_augment=float("nan"))
     assert TrainConfig.from_dict({"iterations": 5}).speed_augment == 1.0  # older checkpoints: off
     seq = twisting_limb(frames=40, rings=8, segments=6, seed=0)

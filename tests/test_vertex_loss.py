@@ -130,7 +130,7 @@ def test_w_vertex_adds_the_term_to_the_objective(limb):
     with pytest.raises(MeshseqError, match="w_vertex"):
         TrainConfig(w_vertex=-1.0)
     for bad in (0, 4.0, True):  # a float would be stored where checkpoints expect an integer
-        with pytest.raises(MeshseqError, match="--vertex-frames"):
+        with pytest.raises(MeshseqError, match="vertex_frames"):
             TrainConfig(vertex_frames=bad)
 
 

@@ -32,7 +32,7 @@ def test_fitted_window_gives_a_batch_of_starts_where_it_can():
 
 
 def test_window_fit_is_checked_stored_and_the_paper_recipe_keeps_the_window(tmp_path, capsys):
-    with pytest.raises(MeshseqError, match="--window-fit 'all'"):
+    with pytest.raises(MeshseqError, match="window_fit 'all'"):
         TrainConfig(window_fit="all")
     assert TrainConfig().window_fit == "batch" and RECIPES["paper"]["window_fit"] == "none"
     assert TrainConfig.from_dict({"iterations": 5}).window_fit == "none"  # older checkpoints: as given

@@ -59,6 +59,7 @@ LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "
                          "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0, "validation": 0.0,
                          "speed_augment": 1.0, "window_fit": "none"}
 
+
 def is_positive_integer(x) -> bool:
     """An int (numpy integers too) >= 1, not a bool and not a float: what a count option may hold."""
     return isinstance(x, (int, np.integer)) and not isinstance(x, bool) and x >= 1
@@ -154,49 +155,53 @@ class TrainConfig:
     precision: str = "float32"
 
     def __post_init__(self):
-        for name in ("iterations", "window", "batch", "stride"):
+        """MeshseqError naming the first bad field: its command-line flag (``--window``) where it has
+        one, else its name (``fc_lr``), as a ``--config`` file sets it."""
+        for name in ("iterations", "window", "batch"):
             if int(getattr(self, name)) < 1:
                 raise MeshseqError(f"--{name} {getattr(self, name)}: expected a positive integer")
+        if int(self.stride) < 1:
+            raise MeshseqError(f"stride {self.stride}: expected a positive integer")
         if int(self.window) < 2:
             raise MeshseqError(f"--window {self.window}: a window needs at least 2 frames")
         check_holdout(self.holdout, self.holdout_at)
         check_validation(self.validation)
         for name in ("eval_every", "checkpoint_every", "log_every"):
             if int(getattr(self, name)) < 0:
-                raise MeshseqError(f"--{name.replace('_', '-')} {getattr(self, name)}: expected >= 0")
+                raise MeshseqError(f"{name} {getattr(self, name)}: expected >= 0")
         for name in ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "w_vertex"):
             if not float(getattr(self, name)) >= 0:
                 raise MeshseqError(f"loss weight {name}={getattr(self, name)} must be >= 0")
         if not is_positive_integer(self.vertex_frames):
-            raise MeshseqError(f"--vertex-frames {self.vertex_frames!r}: expected a positive integer")
+            raise MeshseqError(f"vertex_frames {self.vertex_frames!r}: expected a positive integer")
         if self.window_fit not in WINDOW_FITS:
-            raise MeshseqError(f"--window-fit {self.window_fit!r}: expected one of {', '.join(WINDOW_FITS)}")
+            raise MeshseqError(f"window_fit {self.window_fit!r}: expected one of {', '.join(WINDOW_FITS)}")
         if not (is_finite_number(self.speed_augment) and self.speed_augment >= 1):
-            raise MeshseqError(f"--speed-augment {self.speed_augment!r}: expected a number >= 1 (1 = off)")
+            raise MeshseqError(f"speed_augment {self.speed_augment!r}: expected a number >= 1 (1 = off)")
         if not float(self.lr) > 0:
-            raise MeshseqError(f"--lr {self.lr}: expected a positive number")
+            raise MeshseqError(f"lr {self.lr}: expected a positive number")
         if not (is_finite_number(self.adam_beta2) and 0 <= self.adam_beta2 < 1):
-            raise MeshseqError(f"--adam-beta2 {self.adam_beta2!r}: expected a number in [0, 1)")
+            raise MeshseqError(f"adam_beta2 {self.adam_beta2!r}: expected a number in [0, 1)")
         if not 1 <= int(self.given) < int(self.window):
-            raise MeshseqError(f"--given {self.given}: expected 1 <= given < --window ({self.window})")
+            raise MeshseqError(f"given {self.given}: expected 1 <= given < --window ({self.window})")
         if self.step_scale not in STEP_SCALES:
-            raise MeshseqError(f"--step-scale {self.step_scale!r}: expected one of {', '.join(STEP_SCALES)}")
+            raise MeshseqError(f"step_scale {self.step_scale!r}: expected one of {', '.join(STEP_SCALES)}")
         if self.fc_lr not in FC_LRS:
-            raise MeshseqError(f"--fc-lr {self.fc_lr!r}: expected one of {', '.join(FC_LRS)}")
+            raise MeshseqError(f"fc_lr {self.fc_lr!r}: expected one of {', '.join(FC_LRS)}")
         if not is_positive_integer(self.fc_lr_fan_in):
-            raise MeshseqError(f"--fc-lr-fan-in {self.fc_lr_fan_in!r}: expected a positive integer")
+            raise MeshseqError(f"fc_lr_fan_in {self.fc_lr_fan_in!r}: expected a positive integer")
         if self.logvar_max is not None and not is_finite_number(self.logvar_max):
-            raise MeshseqError(f"--logvar-max {self.logvar_max!r}: expected a number")
+            raise MeshseqError(f"logvar_max {self.logvar_max!r}: expected a number")
         if self.mu_max is not None and not (is_finite_number(self.mu_max) and self.mu_max > 0):
-            raise MeshseqError(f"--mu-max {self.mu_max!r}: expected a positive number or none")
+            raise MeshseqError(f"mu_max {self.mu_max!r}: expected a positive number or none")
         if self.grad_clip is not None and not (is_finite_number(self.grad_clip) and self.grad_clip > 0):
-            raise MeshseqError(f"--grad-clip {self.grad_clip!r}: expected a positive number or none")
+            raise MeshseqError(f"grad_clip {self.grad_clip!r}: expected a positive number or none")
         if self.ema_decay is not None and not (is_finite_number(self.ema_decay) and 0 < self.ema_decay < 1):
-            raise MeshseqError(f"--ema-decay {self.ema_decay!r}: expected a number in (0, 1) or none")
+            raise MeshseqError(f"ema_decay {self.ema_decay!r}: expected a number in (0, 1) or none")
         if self.feedback_grad not in FEEDBACK_GRADS:
-            raise MeshseqError(f"--feedback-grad {self.feedback_grad!r}: expected one of {', '.join(FEEDBACK_GRADS)}")
+            raise MeshseqError(f"feedback_grad {self.feedback_grad!r}: expected one of {', '.join(FEEDBACK_GRADS)}")
         if self.kl_scale not in KL_SCALES:
-            raise MeshseqError(f"--kl-scale {self.kl_scale!r}: expected one of {', '.join(KL_SCALES)}")
+            raise MeshseqError(f"kl_scale {self.kl_scale!r}: expected one of {', '.join(KL_SCALES)}")
         if self.precision not in PRECISIONS:
             raise MeshseqError(f"--precision {self.precision!r}: expected one of {', '.join(PRECISIONS)}")
 
@@ -302,14 +307,14 @@ def config_from_toml(path: str | Path, base: dict | None = None) -> tuple[dict, 
             try:
                 TrainConfig(**{**(base or {}), key: train[key]})
             except MeshseqError as err:
-                raise MeshseqError(f"{file}: {key}: {_without_flag(err)}") from None
+                raise MeshseqError(f"{file}: {key}: {_without_flag(err, key)}") from None
     return train, model
 
 
-def _without_flag(err: MeshseqError) -> str:
-    """A config check's message without the command-line flag it starts with (``--lr -1: ...``
-    -> ``-1: ...``): the file's key names the option."""
-    return re.sub(r"^--[a-z0-9-]+ ", "", str(err))
+def _without_flag(err: MeshseqError, key: str = "") -> str:
+    """A config check's message without the flag or field name it starts with (``--window 1: ...``,
+    ``lr -1: ...`` -> ``1: ...``, ``-1: ...``): the file's key names the option."""
+    return re.sub(rf"^(--[a-z0-9-]+|{re.escape(key)}) " if key else r"^--[a-z0-9-]+ ", "", str(err))
 
 
 def _model_table(file: str, table: dict) -> dict:
