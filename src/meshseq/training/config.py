@@ -55,7 +55,7 @@ WINDOW_FITS = ("batch", "none")
 #: those runs (TrainConfig.from_dict fills it in when a stored config lacks the field).
 LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "logvar_max": None,
                          "grad_clip": None, "adam_beta2": 0.999, "ema_decay": None,
-                         "mu_max": None, "feedback_grad": "full",
+                         "mu_max": None, "feedback_grad": "full", "tempo_augment": 0.0,
                          "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0, "validation": 0.0,
                          "speed_augment": 1.0, "window_fit": "none"}
 
@@ -84,7 +84,9 @@ class TrainConfig:
         stride: take every stride-th frame. holdout: fraction of every data set held out (one
         block); holdout_at: where it starts (``start``, ``end`` or a fraction). speed_augment R:
         play every window at a random speed in [1/R, R] (log-uniform, linear interpolation of
-        frames; 1 = off). scaling: feature scaling to [-0.95, 0.95] fitted on the training frames
+        frames; 1 = off). tempo_augment S: play a share S of the windows with a changing tempo
+        (holds, slow-downs to a stop, speed-ups; ``WindowSampler.sample_at_tempos``; 0 = off).
+        scaling: feature scaling to [-0.95, 0.95] fitted on the training frames
         (``two-group``, ``per-channel``, ``robust``). consistency: rotation consistency of the ACAP
         features (``temporal``, ``spatial``). window_fit: ``batch`` shortens the window until the
         training frames hold a batch of different windows (never below 16 frames while that
@@ -134,6 +136,7 @@ class TrainConfig:
     holdout_at: str = "end"
     validation: float = 0.0
     speed_augment: float = 1.0
+    tempo_augment: float = 0.0
     scaling: str = "two-group"
     consistency: str = "temporal"
     given: int = 1
@@ -178,6 +181,10 @@ class TrainConfig:
             raise MeshseqError(f"window_fit {self.window_fit!r}: expected one of {', '.join(WINDOW_FITS)}")
         if not (is_finite_number(self.speed_augment) and self.speed_augment >= 1):
             raise MeshseqError(f"speed_augment {self.speed_augment!r}: expected a number >= 1 (1 = off)")
+        if not (is_finite_number(self.tempo_augment) and 0 <= self.tempo_augment <= 1):
+            raise MeshseqError(f"tempo_augment {self.tempo_augment!r}: expected a share in [0, 1] (0 = off)")
+        if self.tempo_augment > 0 and self.speed_augment > 1:
+            raise MeshseqError("tempo_augment and speed_augment: choose one of the two augmentations")
         if not float(self.lr) > 0:
             raise MeshseqError(f"lr {self.lr}: expected a positive number")
         if not (is_finite_number(self.adam_beta2) and 0 <= self.adam_beta2 < 1):

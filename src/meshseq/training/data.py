@@ -110,16 +110,20 @@ def training_windows(frames: torch.Tensor, sampler: WindowSampler, rng: np.rando
     """This process's ``share`` of one iteration's ``(batch, window, V, 9)`` windows of the
     stacked ``(T, V, 9)`` frames (every process draws the whole batch, so the generators stay in
     step); with ``speed_augment > 1`` played at random speeds (``WindowSampler.sample_at_speeds``),
+    with ``tempo_augment > 0`` that share of them with a changing tempo (``sample_at_tempos``),
     each frame the linear interpolation of the two frames around its position.
     Returns ``(windows, rows)``, ``rows`` ``(batch, window)`` the frames' indices (None for windows
     played at other speeds: their frames are interpolations)."""
     def rows(r: np.ndarray) -> torch.Tensor:
         return gather_frames(frames, torch.from_numpy(r[share]).to(frames.device))
 
-    if config.speed_augment <= 1:
+    if config.speed_augment <= 1 and config.tempo_augment <= 0:
         r = sampler.sample(rng, config.batch)
         return rows(r), torch.from_numpy(r[share])
-    before, after, weight = sampler.sample_at_speeds(rng, config.batch, config.speed_augment)
+    if config.tempo_augment > 0:
+        before, after, weight = sampler.sample_at_tempos(rng, config.batch, config.tempo_augment)
+    else:
+        before, after, weight = sampler.sample_at_speeds(rng, config.batch, config.speed_augment)
     w = torch.from_numpy(weight[share]).to(frames.device, frames.dtype)[..., None, None]
     return torch.lerp(rows(before), rows(after), w), None
 

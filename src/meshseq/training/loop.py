@@ -313,7 +313,7 @@ def _objective(model: BDLSTM, data: TrainingData, setup: _Setup, dev, dist_info:
     """The ``WindowLoss`` of the run (wrapped by DistributedDataParallel under torchrun)."""
     config = setup.config
     vertex_loss = make_vertex_loss(data, setup.scaled, setup.splits, setup.scaling, config, dev, truth)
-    if vertex_loss is not None and config.speed_augment <= 1:
+    if vertex_loss is not None and config.speed_augment <= 1 and config.tempo_augment <= 0:
         vertex_loss.cache_targets(frames)  # the truth's vertices of every training frame, once
     objective = WindowLoss(model, config, vertex_loss)
     if dist_info.active:
