@@ -19,7 +19,8 @@ from meshseq import __version__
 from meshseq.errors import MeshseqError, MeshseqWarning
 
 #: Modules of meshseq.cli that register sub-commands, in the order --help lists them.
-COMMAND_MODULES = ("acap_cmds", "train_cmds", "synth_cmds", "view_cmds", "demo_cmds", "bodies_cmds")
+COMMAND_MODULES = ("acap_cmds", "train_cmds", "synth_cmds", "view_cmds", "demo_cmds", "bodies_cmds",
+                   "addon_cmds")
 
 
 def build_parser() -> argparse.ArgumentParser:
