@@ -54,8 +54,8 @@ import torch
 from torch import nn
 
 from meshseq.errors import MeshseqError
-from meshseq.kernels import (LSTMStep, MeshConvStack, cpu_kernels_available, fc_product, fc_product_and_row_sums,
-                             fc_transposed_product, fc_weight_gradient, fc_weight_gradient_supported, lstm_step_supported,
+from meshseq.kernels import (LSTMStep, MeshConvStack, fc_product, fc_product_and_row_sums, fc_transposed_product,
+                             fc_weight_gradient, fc_weight_gradient_supported, lstm_step_supported,
                              lstm_transposed, stack_frames)
 from meshseq.mesh import Topology
 
@@ -541,33 +541,13 @@ class _FC:
     def encode(self, x):  # (V*C, B) -> (B, L)
         if self.bank is None:
             w = self.weight if self.enc_weight is None else self.enc_weight
-            if not torch.is_grad_enabled():  # synthesis: one stream over W (csrc/fc.cpp)
-                return _inference_product(fc_product, w, x, self.bias).t()
             return torch.addmm(self.bias[:, None], w, x).t()
         return _Encode.apply(x, self.weight, self.bias, self.bank)
 
     def decode(self, h):  # (B, L) -> (V*C, B)
         if self.bank is None:
-            if not torch.is_grad_enabled():
-                return _inference_product(fc_transposed_product, self.weight, h.t(), self.dec_bias)
             return torch.addmm(self.dec_bias[:, None], self.weight.t(), h.t())
         return _Decode.apply(h, self.weight, self.dec_bias, self.bank)
-
-
-def _inference_product(product, weight: torch.Tensor, x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-    """``product(weight, x, bias)`` (``fc_product`` or ``fc_transposed_product``, ``x`` ``(N or L, B)``)
-    with x's 2 or more columns padded with zeros to a multiple of 8 where the C++ kernels take the
-    product (CPU, float32; they need 8-column tiles): the kernel streams the big weight once
-    whatever the columns, where BLAS read it slower (10k vertices, 2 columns, 1 thread, a loaded
-    machine: 7 against 23 ms for ``W x``). One column stays with BLAS (a matrix-vector product
-    that streams the weight as fast)."""
-    cols = x.shape[1]
-    pad = -cols % 8
-    if cols < 2 or not pad or weight.device.type != "cpu" or weight.dtype != torch.float32 \
-            or x.dtype != torch.float32 or not cpu_kernels_available():
-        return product(weight, x, bias)
-    padded = torch.cat([x, x.new_zeros(x.shape[0], pad)], 1)
-    return product(weight, padded, bias)[:, :cols].contiguous()
 
 
 class RolloutOutput(dict):
