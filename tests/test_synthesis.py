@@ -51,6 +51,33 @@ def test_long_prediction_stays_finite_and_within_the_data_range(model, trained):
     assert np.allclose(np.clip(free[:1], -1, 1), out[:1])
 
 
+def test_prediction_from_a_pose_held_still_stays_still(model, trained):
+    """Three copies of one frame: the default pace keeps the roll-out on that pose; the model's own
+    pace (the paper's roll-out) moves away from it, so the test could fail."""
+    from meshseq.pace import step_levels
+    from meshseq.synthesize import predict
+
+    v = trained[2].vertices
+    x = model.features(v[[30, 30, 30]])
+    held = predict(model, x, 20)
+    free = predict(model, x, 20, pace="model")
+    typical = step_levels(v).mean()
+    assert step_levels(model.vertices(np.concatenate([x[-1:], held]))).mean() < 1e-3 * typical
+    assert step_levels(model.vertices(np.concatenate([x[-1:], free]))).mean() > 0.05 * typical
+    moving = model.features(v[30:33])
+    assert not np.allclose(predict(model, moving, 5), np.repeat(moving[-1:], 5, 0), atol=1e-4)
+
+
+def test_pace_factor_compares_given_steps_with_the_expected_ones():
+    from meshseq.synthesize import pace_factor, predict
+
+    given = torch.tensor([[0.0, 0.0], [0.5, 0.5], [2.0, 2.0], [1.0, 3.0]])
+    expected = torch.tensor([[1.0, 1.0], [1.0, 1.0], [1.0, 1.0], [2.0, 2.0]])
+    assert torch.allclose(pace_factor(given, expected), torch.tensor([0.0, 0.5, 1.0, 1.0]))
+    with pytest.raises(Exception, match="pace"):
+        predict(None, np.zeros((2, 3, 9), np.float32), 2, pace="fast")
+
+
 def test_warm_up_uses_every_given_frame(model, trained):
     from meshseq.synthesize import predict
 

@@ -167,21 +167,22 @@ class Model:
 
     # -- synthesis (see meshseq.synthesize) ---------------------------------------------------
 
-    def predict(self, frames, n_frames: int, sample: bool = False) -> np.ndarray:
+    def predict(self, frames, n_frames: int, sample: bool = False, pace: str = "given") -> np.ndarray:
         """Continue a motion.
 
         ``frames``: given vertices ``(U, V, 3)`` -> vertices ``(U + n, V, 3)``: the given frames
         (exactly), then ``n`` generated ones continuing from the last; or scaled features
-        ``(U, V, 9)`` -> the generated features ``(n, V, 9)``.
+        ``(U, V, 9)`` -> the generated features ``(n, V, 9)``. ``pace``: see
+        ``meshseq.synthesize.predict``.
         """
         from meshseq import synthesize
 
         f = np.asarray(frames)
         if f.shape[-1] == 9:
-            return synthesize.predict(self, f, n_frames, sample=sample)
+            return synthesize.predict(self, f, n_frames, sample=sample, pace=pace)
         given = np.asarray(f, dtype=np.float64)
         feats = self.features(given)
-        gen = synthesize.predict(self, feats, n_frames, sample=sample)
+        gen = synthesize.predict(self, feats, n_frames, sample=sample, pace=pace)
         return synthesize.assemble_vertices(self, np.concatenate([feats, gen]),
                                             {i: given[i] for i in range(len(given))})
 

@@ -39,8 +39,30 @@ def _tensor(model, x) -> torch.Tensor:
 FEATURE_BOUND = 1.0
 
 
+#: How a prediction sets its pace (``predict``): ``given`` slows the roll-out to the given frames'
+#: pace where they move slower than the model expected of them; ``model`` keeps the model's own
+#: (the paper's roll-out).
+PACES = ("given", "model")
+
+
+def _rms(d: torch.Tensor) -> torch.Tensor:
+    """``(B, V, C)`` -> ``(B,)``: RMS over vertices and channels."""
+    return d.square().mean((-2, -1)).sqrt()
+
+
+def pace_factor(given_steps: torch.Tensor, expected_steps: torch.Tensor) -> torch.Tensor:
+    """``(B, U-1)`` RMS sizes of the given frames' steps and of the steps the model predicted for
+    the same transitions during its warm-up -> ``(B,)`` factor in [0, 1] on every generated step.
+
+    The ratio compares the given motion with what the model expects at this phase of the motion
+    (at the turn of a swing both are small), so a motion held still or slowing down gives a small
+    factor and a motion at the model's pace gives 1. The roll-out is never sped up.
+    """
+    return (given_steps.mean(1) / expected_steps.mean(1).clamp_min(1e-12)).clamp(max=1.0)
+
+
 def predict(model, given, n_frames: int, state=None, sample: bool = False,
-            bound: float | None = FEATURE_BOUND) -> np.ndarray:
+            bound: float | None = FEATURE_BOUND, pace: str = "given") -> np.ndarray:
     """Generate ``n_frames`` frames after the given ones.
 
     Args:
@@ -51,9 +73,14 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         sample: draw the VAE latent instead of taking its mean.
         bound: clamp every generated frame to ``[-bound, bound]`` (the training data fill
             ``[-0.95, 0.95]``), so long roll-outs stay within the data's range; None: no clamp.
+        pace: ``given`` (default): with U >= 2, every generated step is scaled by
+            ``pace_factor`` (a pose held still stays still, a slowing motion stays slow);
+            ``model``: the roll-out as trained. One given frame says nothing of the pace.
     Returns:
         ``(n_frames, V, 9)`` (or ``(B, n_frames, V, 9)``) generated scaled features.
     """
+    if pace not in PACES:
+        raise MeshseqError(f"unknown pace {pace!r}; expected one of {', '.join(PACES)}")
     x = _tensor(model, given)
     single = x.dim() == 3
     if single:
@@ -66,11 +93,19 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         state = model.initial_state(bsz, "forward")
     out = torch.empty((bsz, int(n_frames)) + tuple(x.shape[2:]))
     with torch.no_grad():
+        expected = []
         for i in range(u - 1):  # warm-up on the given frames
-            state, _, _, _ = net.step(state, x[:, i], sample=sample, n_forward=bsz)
+            state, guess, _, _ = net.step(state, x[:, i], sample=sample, n_forward=bsz)
+            expected.append(_rms(guess - x[:, i]))
+        factor = None
+        if pace == "given" and u > 1:
+            factor = pace_factor(_rms(x[:, 1:] - x[:, :-1]), torch.stack(expected, 1))[:, None, None]
         cur = x[:, -1]
         for t in range(int(n_frames)):  # free-running; the time loop is the only Python loop
+            prev = cur
             state, cur, _, _ = net.step(state, cur, sample=sample, n_forward=bsz)
+            if factor is not None:
+                cur = torch.lerp(prev, cur, factor)
             if bound is not None:
                 cur = cur.clamp(-bound, bound)
             out[:, t] = cur.cpu()

@@ -31,6 +31,10 @@ def register(sub) -> None:
     p.add_argument("--method", choices=PREDICTION_METHODS, default="ours",
                    help="ours (the trained model, default) or a baseline: zero_velocity, linear_acap, "
                    "vae_latent (a mesh VAE trained on the run's training frames on first use)")
+    p.add_argument("--pace", choices=("given", "model"), default="given",
+                   help="given (default): with --given 2 or more, slow the roll-out to the given frames' pace "
+                   "where they move slower than the model expects (a pose held still stays still); "
+                   "model: the roll-out as trained")
     _output(p)
     p.set_defaults(func=cmd_predict)
 
@@ -198,7 +202,7 @@ def cmd_predict(args) -> int:
     given_v = seq.vertices[args.start:args.start + args.given]
     feats = model.features(given_v)
     if args.method == "ours":
-        gen = synthesize.predict(model, feats, args.frames)
+        gen = synthesize.predict(model, feats, args.frames, pace=args.pace)
     elif args.method == "vae_latent":
         all_feats = model.features(seq.vertices)
         lo, hi = _recorded_heldout(model, seq) or (args.start, args.start + args.given)
