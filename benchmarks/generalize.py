@@ -1,0 +1,214 @@
+"""Generalisation benchmark: the default recipe, no per-set options, on every real capture at hand.
+
+For each set it trains the default recipe with a held-out block (the paper's held-out end, and
+blocks inside the sequence with ``--blocks``), then scores the block: prediction (1 and 3 given
+frames, horizons 5/10/15, centroid-aligned and rigidly aligned) against zero velocity, linear
+ACAP extrapolation and the mesh-VAE latent; completion at gaps 5/10/20/30 against linear
+interpolation of the features and of the vertices; the motion level of 50 generated frames
+against the truth's; whether predictions keep the pace of their given frames; and the block's
+novelty against the training frames and its motion level next to the errors.
+
+    python benchmarks/generalize.py --sets horse-gallop pcow crane bodies --iterations 2000 \\
+        --out runs/generalize --bodies bodies1k.h5
+    python benchmarks/generalize.py --table runs/generalize/*.json      # Markdown tables
+
+Runs resume (a run folder with checkpoints continues to ``--iterations``), and a finished
+evaluation is reused, so a long benchmark continues across sessions. The body set (``bodies``:
+every sequence of a ``meshseq make-bodies`` file) trains on all subjects and motions but one
+subject and one motion, and scores the held-out subject's and the held-out motion's sequences
+whole, as skeletal in-betweening benchmarks hold out subjects.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = Path(os.environ.get("MESHSEQ_SHARED_DATA", ROOT.parent / "shared" / "data"))
+HORIZONS = (5, 10, 15)
+GAPS = (5, 10, 20, 30)
+COMPLETION = ("ours", "stitch", "linear", "linear_vertices")
+PREDICTION = ("ours", "zero_velocity", "linear_acap", "vae_latent")
+
+
+def body_specs(path: str, subject: str, motion: str) -> tuple[list[str], list[str]]:
+    """``(training specs, held-out specs)`` of a make-bodies file: every ``SUBJECT_MOTION``
+    sequence, those of ``subject`` or ``motion`` held out."""
+    import h5py
+
+    with h5py.File(path, "r") as fh:
+        names = sorted(k for k in fh.keys() if k != "faces")
+    held = [n for n in names if n.startswith(subject + "_") or n.endswith("_" + motion)]
+    return [f"{path}:{n}" for n in names if n not in held], [f"{path}:{n}" for n in held]
+
+
+def novelty(train_feats: np.ndarray, block_feats: np.ndarray) -> float:
+    """Median over the block's frames of the distance to the nearest training frame, over the
+    median distance between consecutive training frames (1 = one typical step away)."""
+    a = train_feats.reshape(len(train_feats), -1).astype(np.float64)
+    b = block_feats.reshape(len(block_feats), -1).astype(np.float64)
+    d2 = (b * b).sum(1)[:, None] + (a * a).sum(1)[None, :] - 2.0 * b @ a.T
+    nearest = np.sqrt(np.maximum(d2.min(1), 0.0))
+    step = np.median(np.linalg.norm(np.diff(a, axis=0), axis=1))
+    return float(np.median(nearest) / max(step, 1e-12))
+
+
+def score_block(model, vae, verts: np.ndarray, feats: np.ndarray, train_feats: np.ndarray, lo: int, hi: int) -> dict:
+    """Every figure of one held-out block ``[lo, hi)`` of one sequence."""
+    from meshseq.evaluate import completion_errors, feature_change, prediction_errors, prediction_starts
+    from meshseq.pace import pace_levels, pace_table, step_levels
+    from meshseq.plots import feature_change as relative_change
+
+    train_level = float(np.mean(step_levels(verts[:lo] if lo > 1 else verts[hi:])))
+    out = {"frames": [int(lo), int(hi)], "novelty": novelty(train_feats, feats[lo:hi]),
+           "motion_level": float(np.mean(step_levels(verts[lo:hi])) / max(train_level, 1e-12)),
+           "prediction": {}, "completion": {}}
+    for u in (1, 3):
+        res = prediction_errors(model, verts, feats, lo, hi, u, list(HORIZONS), list(PREDICTION), vae=vae)
+        out["prediction"][f"u{u}"] = {m: {k: r[k] for k in ("centroid", "rigid")} for m, r in res.items()}
+    gaps = [g for g in GAPS if hi - lo >= g + 2]
+    out["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1)
+    starts = prediction_starts(lo, hi, 1, 1)
+    fc = feature_change(model, feats, starts[:: max(1, len(starts) // 8)], 1, 50, ["ours"])
+    truth = float(relative_change(model.scaling.invert(feats[lo:hi].astype(np.float64))).mean())
+    out["motion_50"] = float(np.mean(fc["ours"]) / max(truth, 1e-12))
+    starts3 = prediction_starts(lo, hi, 3, 15)
+    if len(starts3):
+        levels = pace_levels(model, verts, feats, starts3, 3, 15)
+        out["pace"] = pace_table(levels, train_level)
+    return out
+
+
+def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], args, holdout_at: str,
+            holdout: float = 0.2) -> dict:
+    """Train (or resume) the default recipe on ``specs`` and score the held-out blocks.
+
+    ``scored``: ``(index into specs or None for an unseen sequence, spec)``.
+    """
+    import meshseq
+    from meshseq import checkpoint as ckpt
+    from meshseq.data.windows import Split
+    from meshseq.io import load_sequence
+    from meshseq.train import TrainConfig, load_training_data, train
+
+    tag = f"{name}@{holdout_at}"
+    run = Path(args.out) / tag.replace("@", "-at-")
+    record = Path(args.out) / f"{tag.replace('@', '-at-')}.json"
+    if record.exists():
+        done = json.loads(record.read_text())
+        if done.get("iteration") == args.iterations:
+            return done
+    data = load_training_data(specs)
+    config = TrainConfig(iterations=args.iterations, seed=args.seed, holdout_at=holdout_at, holdout=holdout,
+                         eval_every=0,
+                         checkpoint_every=min(500, args.iterations), keep=2)
+    t0 = time.perf_counter()
+    train(data, run, config, device=args.device, resume=bool(ckpt.list_checkpoints(run)), progress=not args.quiet)
+    seconds = time.perf_counter() - t0
+    model = meshseq.load(run)
+    meta = json.loads((ckpt.resolve(run) / "model.json").read_text())
+    splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
+    train_feats = np.concatenate([model.scaling.apply(f)[a:b] for f, s in zip(data.features, splits) for a, b in s.train])
+    vae = train_vae_baseline(model, train_feats)
+    blocks = []
+    for index, spec in scored:
+        verts = load_sequence(spec).vertices.astype(np.float64)
+        feats = model.features(verts)
+        lo, hi = (splits[index].heldout if index is not None else (0, len(verts)))
+        block = score_block(model, vae, verts, feats, train_feats, lo, hi)
+        block["sequence"] = spec
+        blocks.append(block)
+        print(line(tag, block), flush=True)
+    out = {"set": name, "holdout_at": holdout_at, "iteration": model.iteration, "seconds_training": seconds,
+           "train": config.to_dict(), "blocks": blocks,
+           "command": "python benchmarks/generalize.py " + " ".join(args.argv)}
+    record.write_text(json.dumps(out, indent=1))
+    return out
+
+
+def train_vae_baseline(model, train_feats: np.ndarray):
+    from meshseq import baselines
+    from meshseq.mesh import Topology
+
+    topo = Topology.from_faces(model.faces, model.config.n_vertices)
+    return baselines.train_vae(train_feats, topo, latent=model.config.latent, device=model.device)
+
+
+def best_baseline(pred: dict, u: str, key: str, h: str) -> float:
+    return min(pred[u][m][key][h] for m in PREDICTION[1:] if m in pred[u])
+
+
+def line(tag: str, b: dict) -> str:
+    p = b["prediction"]
+    cells = " ".join(f"{u}h{h}{'r' if key == 'rigid' else ''} {p[u]['ours'][key][h] / best_baseline(p, u, key, h):.2f}"
+                     for u in ("u1", "u3") for h in ("10", "15") for key in ("centroid", "rigid"))
+    comp = " ".join(f"g{g} {c['ours'] / min(c['linear'], c['linear_vertices']):.2f}" for g, c in b["completion"].items())
+    return (f"{tag} {Path(b['sequence']).name}: novelty {b['novelty']:.1f} motion {b['motion_level']:.2f} | "
+            f"ours/best {cells} | ours/interp {comp} | motion50 {b['motion_50']:.2f}")
+
+
+def table(files: list[str]) -> str:
+    """Markdown: one row per block, ratios against the best baseline (prediction, h10/h15,
+    u1/u3, raw and rigid), against the better interpolation (completion), motion level."""
+    rows = ["| set, block | sequence | novelty | motion | u1 h10 | u1 h15 | u3 h10 | u3 h15 | rigid u3 h15 | "
+            "gap 5 | gap 10 | gap 20 | gap 30 | motion of 50 |", "|" + "---|" * 14]
+    for f in files:
+        rec = json.loads(Path(f).read_text())
+        for b in rec["blocks"]:
+            p = b["prediction"]
+            r = lambda u, h, k="centroid": f"{p[u]['ours'][k][h] / best_baseline(p, u, k, h):.2f}"
+            c = [f"{b['completion'][g]['ours'] / min(b['completion'][g]['linear'], b['completion'][g]['linear_vertices']):.2f}"
+                 if g in b["completion"] else "-" for g in ("5", "10", "20", "30")]
+            rows.append(f"| {rec['set']} @ {rec['holdout_at']} | {Path(b['sequence']).name} | {b['novelty']:.1f} | "
+                        f"{b['motion_level']:.2f} | {r('u1', '10')} | {r('u1', '15')} | {r('u3', '10')} | "
+                        f"{r('u3', '15')} | {r('u3', '15', 'rigid')} | {' | '.join(c)} | {b['motion_50']:.2f} |")
+    return "\n".join(rows)
+
+
+def main(argv=None) -> None:
+    import sys
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--sets", nargs="+", default=["horse-gallop", "pcow", "crane", "bodies"])
+    p.add_argument("--blocks", nargs="+", default=["end"], help="where the held-out block lies: end, start or a fraction")
+    p.add_argument("--bodies", default=None, help="make-bodies HDF5 for the set 'bodies'")
+    p.add_argument("--hold-subject", default="male_slim")
+    p.add_argument("--hold-motion", default="shake_arms")
+    p.add_argument("--iterations", type=int, default=2000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--out", default="runs/generalize")
+    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--table", nargs="*", default=None, help="print the Markdown table of these records")
+    args = p.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    if args.table is not None:
+        print(table(args.table))
+        return
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    for name in args.sets:
+        if name == "bodies":
+            if not args.bodies:
+                raise SystemExit("--sets bodies needs --bodies FILE.h5 (meshseq make-bodies)")
+            specs, held = body_specs(args.bodies, args.hold_subject, args.hold_motion)
+            # the training sequences' own held-out ends, then the unseen sequences whole
+            run_set(name, specs, [(None, s) for s in held], args, "end", holdout=0.0)
+            continue
+        spec = str(SHARED / f"{name}.npz") if (SHARED / f"{name}.npz").is_file() else name
+        for at in args.blocks:
+            run_set(Path(spec).stem, [spec], [(0, spec)], args, at)
+
+
+if __name__ == "__main__":
+    main()
