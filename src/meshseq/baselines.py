@@ -65,20 +65,36 @@ def linear_interpolation(key_a: np.ndarray, key_b: np.ndarray, n_between: int) -
 class MeshVAE(nn.Module):
     """A mesh-convolutional VAE on single frames ``(B, V, C)``: the generator's own encoder
     (conv + FC + VAE head) and tied decoder, trained to output the frame itself rather than a
-    change. (The wrapped generator's LSTM is unused.)"""
+    change. (The wrapped generator's LSTM is unused.) With ``config.input_norm`` (``train_vae``'s
+    default) it encodes and decodes frames normalised as the generator's input is (centred on the
+    mean training frame, divided by each channel's spread): without it the frames of a sequence
+    differ by a few hundredths of the scaled range and the VAE reconstructs their mean."""
 
     def __init__(self, config: ModelConfig, topology: Topology):
         super().__init__()
         self.config = config
         self.net = BDLSTM(config, topology)
 
+    def normalise(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, V, C)`` frames -> the same normalised (identity without ``input_norm``)."""
+        if not self.config.input_norm:
+            return x
+        return (x - self.net.input_offset[:, :, 0].t()) / self.net.input_spread.view(1, 1, -1)
+
     def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(B, V, C)`` -> ``(mu, logvar)`` each ``(B, L)``."""
         return self.net.encode(x)
 
+    def decode_normalised(self, z: torch.Tensor) -> torch.Tensor:
+        """``(B, L)`` -> normalised frames ``(B, V, C)`` (what training fits)."""
+        return self.net.decode(z)
+
     def decode(self, z: torch.Tensor) -> torch.Tensor:
         """``(B, L)`` -> frames ``(B, V, C)``."""
-        return self.net.decode(z)
+        out = self.net.decode(z)
+        if not self.config.input_norm:
+            return out
+        return out * self.net.input_spread.view(1, 1, -1) + self.net.input_offset[:, :, 0].t()
 
 
 def vae_param_groups(vae: MeshVAE, lr: float) -> list[dict]:
@@ -97,10 +113,12 @@ def vae_param_groups(vae: MeshVAE, lr: float) -> list[dict]:
             {"params": [fc], "lr": lr * factor}]
 
 
-def train_vae(frames: np.ndarray, topology: Topology, latent: int = 128, iterations: int = 500,
+def train_vae(frames: np.ndarray, topology: Topology, latent: int = 128, iterations: int = 3000,
               batch: int = 16, lr: float = 1e-3, kl_weight: float = 1e-3, seed: int = 0,
-              device: str | torch.device = "cpu") -> MeshVAE:
-    """Fit a ``MeshVAE`` to scaled training frames ``(N, V, C)`` (reconstruction + KL).
+              device: str | torch.device = "cpu", patience: int = 300) -> MeshVAE:
+    """Fit a ``MeshVAE`` to scaled training frames ``(N, V, C)`` (reconstruction + KL), on
+    normalised frames (``MeshVAE``), until the reconstruction error has not improved by 1% for
+    ``patience`` iterations, or ``iterations`` at most.
 
     The big FC weight (fan-in V x C, tied to the decoder) learns at ``lr x min(1, 9000 / (V x C))``
     (``vae_param_groups``).
@@ -108,19 +126,30 @@ def train_vae(frames: np.ndarray, topology: Topology, latent: int = 128, iterati
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     x_all = torch.as_tensor(np.asarray(frames), dtype=torch.float32, device=device)
-    config = ModelConfig(n_vertices=x_all.shape[1], channels=x_all.shape[2], latent=latent, lstm_layers=1, variant="uni")
-    vae = MeshVAE(config, topology).to(device)
+    config = ModelConfig(n_vertices=x_all.shape[1], channels=x_all.shape[2], latent=latent, lstm_layers=1,
+                         variant="uni", input_norm=True)
+    vae = MeshVAE(config, topology)
+    vae.net.set_input_norm(np.asarray(frames))
+    vae = vae.to(device)
     opt = torch.optim.Adam(vae_param_groups(vae, lr), lr=lr)
+    best, since, smooth = np.inf, 0, None
     for _ in range(iterations):
         x = x_all[torch.as_tensor(rng.integers(0, len(x_all), size=min(batch, len(x_all))), device=device)]
         mu, logvar = vae.encode(x)
         z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu)
-        rec = ((vae.decode(z) - x) ** 2).sum(dim=(1, 2)).mean()
+        rec = ((vae.decode_normalised(z) - vae.normalise(x)) ** 2).sum(dim=(1, 2)).mean()
         kl = -0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(dim=1).mean()
         loss = rec + kl_weight * kl
         opt.zero_grad()
         loss.backward()
         opt.step()
+        smooth = rec.item() if smooth is None else 0.98 * smooth + 0.02 * rec.item()
+        if smooth < 0.99 * best:
+            best, since = smooth, 0
+        else:
+            since += 1
+            if since >= patience:
+                break
     return vae.eval()
 
 

@@ -16,6 +16,8 @@ from meshseq.errors import MeshseqError, MeshseqWarning
 #: the parser does not import torch (tests/test_synthesis.py checks that they match)
 PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
 COMPLETION_METHODS = ("ours", "stitch", "cma", "linear", "linear_vertices")
+#: ``meshseq.synthesize.PACES`` (the same check)
+PACES = ("given", "model")
 
 
 def register(sub) -> None:
@@ -31,7 +33,7 @@ def register(sub) -> None:
     p.add_argument("--method", choices=PREDICTION_METHODS, default="ours",
                    help="ours (the trained model, default) or a baseline: zero_velocity, linear_acap, "
                    "vae_latent (a mesh VAE trained on the run's training frames on first use)")
-    p.add_argument("--pace", choices=("given", "model"), default="given",
+    p.add_argument("--pace", choices=PACES, default=PACES[0],
                    help="given (default): with --given 2 or more, slow the roll-out to the given frames' pace "
                    "where they move slower than the model expects (a pose held still stays still); "
                    "model: the roll-out as trained")
@@ -138,9 +140,10 @@ def _vae(model, run: str, seq, feats: np.ndarray, exclude: tuple[int, int], iter
         except MeshseqError as err:  # a cache: train a new one
             warnings.warn(f"{err}; training a new VAE baseline", MeshseqWarning)
         else:
-            # a VAE cached before its FC learned at the fan-in rate (vae_param_groups) is retrained
+            # a VAE cached before its FC learned at the fan-in rate (vae_param_groups), or before it
+            # saw normalised frames (MeshVAE), is retrained
             if meta.get("data") == seq.source and meta.get("exclude") == list(exclude) \
-                    and meta.get("fc_lr") == baselines.VAE_FC_LR:
+                    and meta.get("fc_lr") == baselines.VAE_FC_LR and vae.config.input_norm:
                 return vae
     frames = np.concatenate([feats[: exclude[0]], feats[exclude[1]:]])
     if len(frames) < 2:
