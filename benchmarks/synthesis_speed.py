@@ -19,7 +19,7 @@ time per step; 30-frame gap, 8 samples, 10k vertices: at most 2 s through the AP
 ``--command RUN DATA`` also times ``meshseq complete RUN DATA --keyframes 0,31 --samples 8`` as a
 command (start-up and loading included; target 4 s on crane).
 
-    python benchmarks/synthesis_speed.py [--repeat 5] [--command /tmp/crane_run crane.npz]
+    python benchmarks/synthesis_speed.py [--repeat 5] [--threads N] [--command /tmp/crane_run crane.npz]
 """
 
 from __future__ import annotations
@@ -129,7 +129,12 @@ def main() -> None:
     ap.add_argument("--meshes", default=",".join(MESHES), help="which of 3k,10k")
     ap.add_argument("--command", nargs=2, metavar=("RUN", "DATA"), default=None,
                     help="also time `meshseq complete RUN DATA --samples 8` of a 30-frame gap")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads (default: torch's choice, one per core); 1 gives steadier figures on a "
+                         "machine shared with other work (the kernels' OpenMP threads wait for each other)")
     args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     gflops, gbs = machine_rates(args.repeat)
     print(f"machine: float32 matmul {gflops:.1f} GFLOP/s, copy {gbs:.1f} GB/s (read + write); "
           f"torch threads {torch.get_num_threads()}")
