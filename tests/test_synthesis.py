@@ -132,6 +132,22 @@ def test_corrected_join_ends_on_both_keys_and_removes_a_chain_drift():
     assert np.abs(stitch_chains(fwd, bwd)[0] - truth).max() > 0.1
 
 
+def test_anchored_join_keeps_chains_that_reach_the_far_key_and_drops_ones_that_miss_it():
+    from meshseq.synthesize import join_chains, reach_weights
+
+    t = np.linspace(0.0, 1.0, 9)[:, None, None]
+    truth = np.sin(3.0 * t + np.arange(4)[None, :, None] + np.arange(9)[None, None, :])  # (9, 4, 9)
+    hit = join_chains(truth[None], truth[::-1][None], "anchored")[0][0]
+    assert reach_weights(truth[None], truth[::-1][None])[0] == pytest.approx(1.0)
+    np.testing.assert_allclose(hit, truth, atol=1e-12)
+    # a pose held still between two equal keys, chains that play a motion: the interpolation
+    still = np.repeat(truth[:1], 9, axis=0)
+    wander = still + 0.3 * np.sin(6.0 * t)
+    out = join_chains(wander[None], wander[None], "anchored")[0][0]
+    assert reach_weights(wander[None], wander[None])[0] == 0.0
+    np.testing.assert_allclose(out, still, atol=1e-12)
+
+
 def test_completion_joins_paper_stitch_and_corrected(model, trained):
     from meshseq.errors import MeshseqError
     from meshseq.synthesize import complete
@@ -420,16 +436,19 @@ def test_keyframe_completion_samples_equal_sequential_single_sample_completions(
 
 @pytest.mark.parametrize("n", [2, 3, 9])
 def test_joining_all_pairs_at_once_equals_joining_each_pair(n):
-    from meshseq.synthesize import corrected_crossfade, join_chains, stitch_chains
+    from meshseq.synthesize import corrected_crossfade, join_chains, reach_weights, stitch_chains
 
     rng = np.random.default_rng(n)
     forward = rng.normal(size=(3, n, 5, 9)).astype(np.float32)
     backward = rng.normal(size=(3, n, 5, 9)).astype(np.float32)
-    for join in ("corrected", "stitch"):
+    for join in ("anchored", "corrected", "stitch"):
         frames, meets, gaps = join_chains(forward, backward, join)
         for p in range(3):
             stitched, meet, gap = stitch_chains(forward[p], backward[p])
-            expect = corrected_crossfade(forward[p], backward[p]) if join == "corrected" else stitched
+            expect = corrected_crossfade(forward[p], backward[p]) if join != "stitch" else stitched
+            if join == "anchored":
+                line = np.linspace(forward[p, 0], backward[p, 0], n)
+                expect = line + reach_weights(forward[p:p + 1], backward[p:p + 1])[0] * (expect - line)
             np.testing.assert_allclose(frames[p], expect, rtol=0, atol=1e-5)
             assert meets[p] == meet and gaps[p] == pytest.approx(gap, rel=1e-5)
 
@@ -448,7 +467,7 @@ def test_batched_completion_errors_equal_the_per_start_reference(model, trained)
     starts = np.arange(lo, hi - gap - 1)
     starts = starts[np.linspace(0, len(starts) - 1, 4).astype(int)]
     assert got["starts"] == 4
-    for method, join in (("ours", "corrected"), ("stitch", "stitch")):
+    for method, join in (("ours", "anchored"), ("stitch", "stitch")):
         errs = []
         for s in starts:
             f = complete(model, feats[s], feats[s + gap + 1], gap, join=join).frames[0]

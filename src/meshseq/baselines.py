@@ -30,7 +30,7 @@ PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
 #: ``stitch``: the same chains joined as in the paper (``synthesize.stitch_chains``); ``linear``:
 #: interpolation of the keys' ACAP features; ``linear_vertices``: straight lines between the keys'
 #: vertex positions.
-COMPLETION_METHODS = ("ours", "stitch", "cma", "linear", "linear_vertices")
+COMPLETION_METHODS = ("ours", "corrected", "stitch", "cma", "linear", "linear_vertices")
 #: how ``train_vae`` sets the FC weight's learning rate (``vae_param_groups``), stored with a cached VAE
 VAE_FC_LR = "fan-in"
 VAE_NOTE = "vae_latent: latent extrapolation of a mesh VAE on ACAP features, standing in for Tan et al. 2018"

@@ -15,7 +15,7 @@ from meshseq.errors import MeshseqError, MeshseqWarning
 #: ``meshseq.baselines.PREDICTION_METHODS`` and ``COMPLETION_METHODS``, kept here so that building
 #: the parser does not import torch (tests/test_synthesis.py checks that they match)
 PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
-COMPLETION_METHODS = ("ours", "stitch", "cma", "linear", "linear_vertices")
+COMPLETION_METHODS = ("ours", "corrected", "stitch", "cma", "linear", "linear_vertices")
 #: ``meshseq.synthesize.PACES`` (the same check)
 PACES = ("given", "model")
 
@@ -53,8 +53,9 @@ def register(sub) -> None:
                    help="K completions from random initial states (default 1: the trained states)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
     p.add_argument("--method", choices=COMPLETION_METHODS, default="ours",
-                   help="ours (default: the two chains, each corrected to end on the far key, crossfaded), "
-                   "stitch (the same chains joined where they agree best, as in the paper), "
+                   help="ours (default: the two chains, each corrected to end on the far key, crossfaded, and "
+                   "drawn toward the straight line between the keys as far as they missed the far key), "
+                   "corrected (the same without that pull), stitch (the same chains joined where they agree best, as in the paper), "
                    "cma (CMA-ES over the forward chain's initial state), linear "
                    "(interpolation of ACAP features) or linear_vertices (straight lines between the keys' "
                    "vertices)")
