@@ -41,17 +41,11 @@ from meshseq.mesh import Topology
 from meshseq.model import BDLSTM, ModelConfig
 from meshseq import synthesize
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from acap_speed import best_of  # noqa: E402  (a sibling script: the benchmarks share their timer)
+
 MESHES = {"3k": (75, 40), "10k": (125, 80)}  # rings, segments: 3,002 and 10,002 vertices
 GAP = 30
-
-
-def best_of(repeat: int, fn):
-    times, result = [], None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), result
 
 
 def machine_rates(repeat: int) -> tuple[float, float]:
