@@ -178,6 +178,9 @@ class Model:
         from meshseq import synthesize
 
         f = np.asarray(frames)
+        if f.ndim != 3 or f.shape[-1] not in (3, 9) or f.shape[1] != self.config.n_vertices:
+            raise MeshseqError(f"frames must be (U, {self.config.n_vertices}, 3) vertices or (U, "
+                               f"{self.config.n_vertices}, 9) scaled features, got shape {f.shape}")
         if f.shape[-1] == 9:
             return synthesize.predict(self, f, n_frames, sample=sample, pace=pace)
         given = np.asarray(f, dtype=np.float64)
@@ -185,6 +188,23 @@ class Model:
         gen = synthesize.predict(self, feats, n_frames, sample=sample, pace=pace)
         return synthesize.assemble_vertices(self, np.concatenate([feats, gen]),
                                             {i: given[i] for i in range(len(given))})
+
+    def sample(self, frames, n_frames: int, samples: int = 4, seed: int = 0) -> np.ndarray:
+        """Several continuations of a motion, each drawing the VAE latent at every step.
+
+        ``frames``: given vertices ``(U, V, 3)`` -> ``(samples, U + n, V, 3)`` vertices: the given
+        frames (exactly), then ``n`` generated ones; ``seed`` makes the draws repeatable.
+        """
+        from meshseq import synthesize
+
+        f = np.asarray(frames, dtype=np.float64)
+        if f.ndim != 3 or f.shape[-1] != 3 or f.shape[1] != self.config.n_vertices:
+            raise MeshseqError(f"frames must be (U, {self.config.n_vertices}, 3) vertices, got shape {f.shape}")
+        feats = self.features(f)
+        torch.manual_seed(int(seed))
+        gen = synthesize.predict(self, np.repeat(feats[None], int(samples), 0), n_frames, sample=True)
+        return synthesize.assemble_vertices(self, np.concatenate([np.repeat(feats[None], len(gen), 0), gen], 1),
+                                            {i: f[i] for i in range(len(f))})
 
     def complete(self, keyframes, lengths, samples: int = 1, seed: int | None = None) -> np.ndarray:
         """Fill the gaps between keyframes ``(K, V, 3)`` (vertices).
@@ -196,8 +216,13 @@ class Model:
         from meshseq import synthesize
 
         keys = np.asarray(keyframes, dtype=np.float64)
-        if keys.ndim != 3 or len(keys) < 2:
+        if keys.ndim == 3 and keys.shape[-1] == 9:
+            raise MeshseqError(f"keyframes: Model.complete takes vertices (K, V, 3), got features {keys.shape}; "
+                               "complete features with meshseq.synthesize.complete")
+        if keys.ndim != 3 or len(keys) < 2 or keys.shape[-1] != 3:
             raise MeshseqError(f"keyframes must be (K >= 2, V, 3) vertices, got shape {keys.shape}")
+        if keys.shape[1] != self.config.n_vertices:
+            raise MeshseqError(f"keyframes have {keys.shape[1]} vertices, the model expects {self.config.n_vertices}")
         gaps = [int(lengths)] * (len(keys) - 1) if np.ndim(lengths) == 0 else [int(g) for g in lengths]
         if len(gaps) != len(keys) - 1:
             raise MeshseqError(f"lengths: expected one number or {len(keys) - 1}, got {len(gaps)}")
