@@ -125,7 +125,7 @@ def run_demo(out: Path, *, iterations: int = 300, data: str = "auto", force: boo
         keys = {0: seq.vertices[a], gap + 1: seq.vertices[b]}
         comp_v = synthesize.assemble_vertices(model, comp, keys)
         lin_cv = synthesize.assemble_vertices(model, lin_c, keys)
-        img = render.film_strip([comp_v, lin_cv], seq.faces, labels=["ours (stitched chains)", "linear ACAP"],
+        img = render.film_strip([comp_v, lin_cv], seq.faces, labels=["ours (both chains, anchored to the keys)", "linear ACAP"],
                                 ground_truth=seq.vertices[a:b + 1], first_frame=a, up=up,
                                 title=f"completion between keyframes {a} and {b}")
         render.save_image(tmp / "completion.png", img)
