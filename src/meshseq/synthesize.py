@@ -185,7 +185,8 @@ def run_chains(model, keys_a, keys_b, n_between: int, state) -> tuple[np.ndarray
 def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int = 2):
     """``(frames (P, n, V, C), meeting frames (P,), gaps (P,))`` of P chain pairs ``(P, n, V, C)``
     (``run_chains``) joined by ``join``, all pairs at once: what ``corrected_crossfade`` or
-    ``stitch_chains`` give pair by pair; ``meeting``/``gap``: where the raw chains agree best
+    ``stitch_chains`` give pair by pair, and for ``anchored`` the corrected frames drawn toward the
+    keys' straight line by ``reach_weights``; ``meeting``/``gap``: where the raw chains agree best
     (``stitch_chains``' choice), whatever the join."""
     pairs, n = forward.shape[:2]
     back = backward[:, ::-1]  # forward time order: back[:, -1] = key b
@@ -313,8 +314,9 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
             random states a one-sample call with ``seed=seeds[i]`` draws (``seeded_chain_states``).
         join: ``anchored`` (``corrected`` drawn toward the keys' straight line: ``reach_weights``),
             ``corrected`` (``corrected_crossfade``) or ``stitch`` (``stitch_chains`` with ``blend``);
-            default ``anchored``, ``corrected`` for random-state samples (``sample_join``); ``stitch`` / ``gap`` of the result are the raw chains' meeting frame and
-            distance either way.
+            default ``anchored``, ``corrected`` for random-state samples (``sample_join``).
+            ``stitch`` / ``gap`` of the result are the raw chains' meeting frame and distance
+            either way.
     """
     random_state = (samples > 1 if random_state is None else random_state) or seeds is not None
     if join is None:
@@ -326,7 +328,6 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
     if seeds is not None:
         samples, state = len(seeds), seeded_chain_states(model, seeds)
     else:
-        random_state = samples > 1 if random_state is None else random_state
         gen = torch.Generator().manual_seed(int(seed)) if seed is not None else None
         state = chain_states(model, samples, random_state, gen)
     keys_a, keys_b = (_tensor(model, k)[None].expand(samples, -1, -1) for k in (key_a, key_b))
