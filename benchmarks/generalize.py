@@ -140,15 +140,22 @@ def train_vae_baseline(model, train_feats: np.ndarray):
     return baselines.train_vae(train_feats, topo, latent=model.config.latent, device=model.device)
 
 
-def best_baseline(pred: dict, u: str, key: str, h: str) -> float:
-    return min(pred[u][m][key][h] for m in PREDICTION[1:] if m in pred[u])
+def prediction_ratio(block: dict, u: str, h: str, key: str = "centroid") -> float:
+    """Ours over the best baseline at one cell of a scored block."""
+    p = block["prediction"][u]
+    return p["ours"][key][h] / min(p[m][key][h] for m in PREDICTION[1:] if m in p)
+
+
+def completion_ratio(block: dict, gap: str) -> float:
+    """Ours over the better linear interpolation (features or vertices) at one gap."""
+    c = block["completion"][gap]
+    return c["ours"] / min(c["linear"], c["linear_vertices"])
 
 
 def line(tag: str, b: dict) -> str:
-    p = b["prediction"]
-    cells = " ".join(f"{u}h{h}{'r' if key == 'rigid' else ''} {p[u]['ours'][key][h] / best_baseline(p, u, key, h):.2f}"
+    cells = " ".join(f"{u}h{h}{'r' if key == 'rigid' else ''} {prediction_ratio(b, u, h, key):.2f}"
                      for u in ("u1", "u3") for h in ("10", "15") for key in ("centroid", "rigid"))
-    comp = " ".join(f"g{g} {c['ours'] / min(c['linear'], c['linear_vertices']):.2f}" for g, c in b["completion"].items())
+    comp = " ".join(f"g{g} {completion_ratio(b, g):.2f}" for g in b["completion"])
     return (f"{tag} {Path(b['sequence']).name}: novelty {b['novelty']:.1f} motion {b['motion_level']:.2f} | "
             f"ours/best {cells} | ours/interp {comp} | motion50 {b['motion_50']:.2f}")
 
@@ -158,16 +165,15 @@ def table(files: list[str]) -> str:
     u1/u3, raw and rigid), against the better interpolation (completion), motion level."""
     rows = ["| set, block | sequence | novelty | motion | u1 h10 | u1 h15 | u3 h10 | u3 h15 | rigid u3 h15 | "
             "gap 5 | gap 10 | gap 20 | gap 30 | motion of 50 |", "|" + "---|" * 14]
+    cells = [("u1", "10", "centroid"), ("u1", "15", "centroid"), ("u3", "10", "centroid"), ("u3", "15", "centroid"),
+             ("u3", "15", "rigid")]
     for f in files:
         rec = json.loads(Path(f).read_text())
         for b in rec["blocks"]:
-            p = b["prediction"]
-            r = lambda u, h, k="centroid": f"{p[u]['ours'][k][h] / best_baseline(p, u, k, h):.2f}"
-            c = [f"{b['completion'][g]['ours'] / min(b['completion'][g]['linear'], b['completion'][g]['linear_vertices']):.2f}"
-                 if g in b["completion"] else "-" for g in ("5", "10", "20", "30")]
+            pred = [f"{prediction_ratio(b, *cell):.2f}" for cell in cells]
+            comp = [f"{completion_ratio(b, g):.2f}" if g in b["completion"] else "-" for g in ("5", "10", "20", "30")]
             rows.append(f"| {rec['set']} @ {rec['holdout_at']} | {Path(b['sequence']).name} | {b['novelty']:.1f} | "
-                        f"{b['motion_level']:.2f} | {r('u1', '10')} | {r('u1', '15')} | {r('u3', '10')} | "
-                        f"{r('u3', '15')} | {r('u3', '15', 'rigid')} | {' | '.join(c)} | {b['motion_50']:.2f} |")
+                        f"{b['motion_level']:.2f} | {' | '.join(pred)} | {' | '.join(comp)} | {b['motion_50']:.2f} |")
     return "\n".join(rows)
 
 
