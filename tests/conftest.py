@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -70,3 +72,27 @@ def training_data(seq, features=None):
 
     feats = acap.extract(seq.vertices, seq.faces) if features is None else features
     return TrainingData([seq.name], [seq.source], [feats], seq.faces, seq.vertices[0])
+
+
+def run_blender(client: Path, args: list[str], timeout: float, extra_env: dict | None = None) -> str:
+    """Run ``client`` in headless Blender (``-b --factory-startup``) with ``args`` after ``--``;
+    returns its stdout. The test FAILS if Blender is missing or the client does not print
+    BLENDER_CLIENT_OK.
+
+    Blender runs its own Python with Debian's numpy: this test run's virtual environment (an
+    activated venv's PATH, VIRTUAL_ENV, PYTHONPATH) is kept out of it, or it imports the venv's numpy.
+    """
+    exe = shutil.which("blender")
+    if exe is None:
+        pytest.fail("blender is not installed (Debian package blender); run tools/install_test_deps.sh",
+                    pytrace=False)
+    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "PYTHONPATH", "PYTHONHOME")}
+    venv = os.environ.get("VIRTUAL_ENV")
+    if venv:
+        env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep)
+                                      if not p.startswith(venv))
+    env.update(extra_env or {})
+    proc = subprocess.run([exe, "-b", "--factory-startup", "--python-exit-code", "1", "--python", str(client),
+                           "--", *args], capture_output=True, text=True, timeout=timeout, env=env)
+    assert proc.returncode == 0 and "BLENDER_CLIENT_OK" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc.stdout

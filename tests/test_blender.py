@@ -8,15 +8,12 @@ tests/blender_client.py. Blender missing -> the tests FAIL (tools/install_test_d
 
 from __future__ import annotations
 
-import os
-import shutil
-import subprocess
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO_ROOT, shared_file
+from conftest import REPO_ROOT, run_blender, shared_file
 from scipy.spatial import cKDTree
 
 from meshseq.cli import main
@@ -28,22 +25,8 @@ FRAMES = 25  # Blender frames 1..25; the shape keys are keyed every 3 frames, th
 
 
 def blender(*args: str) -> str:
-    """Run tests/blender_client.py in headless Blender; the test FAILS if Blender is missing."""
-    exe = shutil.which("blender")
-    if exe is None:
-        pytest.fail("blender is not installed (Debian package blender); run tools/install_test_deps.sh",
-                    pytrace=False)
-    # Blender runs its own Python with Debian's numpy: keep this test run's virtual environment
-    # (an activated venv's PATH, VIRTUAL_ENV, PYTHONPATH) out of it, or it imports the venv's numpy
-    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "PYTHONPATH", "PYTHONHOME")}
-    venv = os.environ.get("VIRTUAL_ENV")
-    if venv:
-        env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep)
-                                      if not p.startswith(venv))
-    proc = subprocess.run([exe, "-b", "--factory-startup", "--python-exit-code", "1", "--python", str(CLIENT),
-                           "--", *args], capture_output=True, text=True, timeout=300, env=env)
-    assert proc.returncode == 0 and "BLENDER_CLIENT_OK" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-3000:]
-    return proc.stdout
+    """Run tests/blender_client.py in headless Blender (``conftest.run_blender``)."""
+    return run_blender(CLIENT, list(args), timeout=300)
 
 
 @pytest.fixture(scope="module")

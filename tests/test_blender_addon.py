@@ -11,8 +11,6 @@ Blender missing -> the tests FAIL (tools/install_test_deps.sh installs it).
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import subprocess
 import sys
 import zipfile
@@ -20,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, run_blender
 
 from meshseq.cli import main
 from meshseq.cli.addon_cmds import ADDON_MODULE, this_meshseq
@@ -35,23 +33,12 @@ ULP = 2 * np.finfo(np.float32).eps
 
 
 def blender(folder: Path, *args: str) -> None:
-    """Run the client in headless Blender with user folders under ``folder``; FAILS if Blender is missing."""
-    exe = shutil.which("blender")
-    if exe is None:
-        pytest.fail("blender is not installed (Debian package blender); run tools/install_test_deps.sh",
-                    pytrace=False)
-    # keep this test run's virtual environment out of Blender's Python (see test_blender.py); the
-    # add-on runs meshseq by its absolute path
-    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "PYTHONPATH", "PYTHONHOME")}
-    venv = os.environ.get("VIRTUAL_ENV")
-    if venv:
-        env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep) if not p.startswith(venv))
+    """Run the client in headless Blender with user folders under ``folder`` (``conftest.run_blender``;
+    the add-on runs meshseq by its absolute path)."""
     for name in ("config", "scripts"):
         (folder / name).mkdir(exist_ok=True)
-    env.update(BLENDER_USER_CONFIG=str(folder / "config"), BLENDER_USER_SCRIPTS=str(folder / "scripts"))
-    proc = subprocess.run([exe, "-b", "--factory-startup", "--python-exit-code", "1", "--python", str(CLIENT),
-                           "--", *args], capture_output=True, text=True, timeout=900, env=env)
-    assert proc.returncode == 0 and "BLENDER_CLIENT_OK" in proc.stdout, proc.stdout[-3000:] + proc.stderr[-3000:]
+    run_blender(CLIENT, list(args), timeout=900,
+                extra_env={"BLENDER_USER_CONFIG": str(folder / "config"), "BLENDER_USER_SCRIPTS": str(folder / "scripts")})
 
 
 @pytest.fixture(scope="module")
