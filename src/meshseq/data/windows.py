@@ -217,11 +217,7 @@ class WindowSampler:
         speed = np.minimum(speed, room / steps)
         start = first + rng.uniform(0.0, 1.0, size=batch) * (room - speed * steps)
         pos = start[:, None] + (speed * self.stride)[:, None] * np.arange(self.window)[None, :]
-        pos = np.clip(pos, first[:, None], (stop - 1)[:, None])
-        before = np.floor(pos).astype(np.int64)
-        after = np.minimum(before + 1, (stop - 1)[:, None])
-        offset = self.offsets[self.starts[picks, 0]][:, None]
-        return offset + before, offset + after, pos - before
+        return self._frames_around(picks, pos, first, stop)
 
 
     def sample_at_tempos(self, rng: np.random.Generator, batch: int,
@@ -256,12 +252,19 @@ class WindowSampler:
         own = self.starts[picks, 1].astype(np.float64)  # exact windows start where they were drawn
         start = np.where(varied, first + rng.uniform(0.0, 1.0, size=batch) * (room - span), own)
         pos = start[:, None] + self.stride * np.concatenate([np.zeros((batch, 1)), np.cumsum(tempo, 1)], 1)
+        # summed tempos land a hair below whole frames: the nudge keeps exact windows exact
+        return self._frames_around(picks, pos, first, stop, nudge=1e-9)
+
+    def _frames_around(self, picks: np.ndarray, pos: np.ndarray, first: np.ndarray, stop: np.ndarray,
+                       nudge: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Fractional positions ``pos`` ``(B, window)`` in the segments ``[first, stop)`` of windows
+        ``picks`` -> ``(before, after, weight)``: rows of the stacked frames around each position
+        and its fraction between them."""
         pos = np.clip(pos, first[:, None], (stop - 1)[:, None])
-        before = np.floor(pos + 1e-9).astype(np.int64)
-        weight = np.clip(pos - before, 0.0, 1.0)
+        before = np.floor(pos + nudge).astype(np.int64)
         after = np.minimum(before + 1, (stop - 1)[:, None])
         offset = self.offsets[self.starts[picks, 0]][:, None]
-        return offset + before, offset + after, weight
+        return offset + before, offset + after, np.clip(pos - before, 0.0, 1.0)
 
 
 def heldout_rows(splits: list[Split], window: int, stride: int = 1, per_set: int = 4) -> np.ndarray:
