@@ -30,6 +30,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the subjects and performances (default 0)")
     p.add_argument("--tempo", choices=("steady", "varied"), default="steady",
                    help="steady (default), or varied: holds, slow-downs to a stop and speed-ups in every sequence")
+    p.add_argument("--parts", default="", metavar="LIST",
+                   help="comma-separated separate parts carried by every body: eyes, strap (default none)")
     p.add_argument("-o", "--output", required=True, metavar="OUT.h5", help="output file (.h5)")
     p.add_argument("--force", action="store_true", help="overwrite OUT.h5 if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -37,6 +39,7 @@ def register(sub) -> None:
 
 
 def cmd_make_bodies(args) -> int:
+    from meshseq.data.accessories import resolve_parts
     from meshseq.data.bodies import body_model, make_body_set, resolve_motions, resolve_subjects
     from meshseq.errors import MeshseqError
     from meshseq.io import check_output
@@ -49,6 +52,7 @@ def cmd_make_bodies(args) -> int:
         raise MeshseqError(f"--fps {args.fps}: must be positive")
     if args.vertices < 0:
         raise MeshseqError(f"--vertices {args.vertices}: must be 0 (full resolution) or a vertex count")
+    parts = resolve_parts(args.parts)
     check_output(args.output, force=args.force)
     subjects = resolve_subjects(args.subjects, seed=args.seed)
     motions = resolve_motions(args.motions)
@@ -59,7 +63,7 @@ def cmd_make_bodies(args) -> int:
         body_model()
         path = make_body_set(args.output, [s.name for s in subjects] if not args.subjects.strip().isdigit()
                              else len(subjects), motions, args.frames, vertices, seed=args.seed, fps=args.fps,
-                             force=args.force, tempo=args.tempo)
+                             force=args.force, tempo=args.tempo, parts=parts)
     else:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -74,7 +78,8 @@ def cmd_make_bodies(args) -> int:
 
             path = make_body_set(args.output, [s.name for s in subjects] if not args.subjects.strip().isdigit()
                                  else len(subjects), motions, args.frames, vertices, seed=args.seed,
-                                 fps=args.fps, force=args.force, on_sequence=done, tempo=args.tempo)
+                                 fps=args.fps, force=args.force, on_sequence=done, tempo=args.tempo,
+                                 parts=parts)
     elapsed = time.perf_counter() - start
     print(f"wrote {path}: {total} sequences ({len(subjects)} subjects x {len(motions)} motions) x "
           f"{args.frames} frames in {elapsed:.1f} s; read one as {path}:{subjects[0].name}_{motions[0]}")

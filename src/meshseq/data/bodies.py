@@ -37,6 +37,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from meshseq.data.accessories import attach, resolve_parts
 from meshseq.data.motions import (MOTIONS, RIG_BONES, MotionParams, RigAxes, canonical_motion, motion_curves,
                                   varied_tempo)
 from meshseq.errors import MeshseqError
@@ -223,6 +224,10 @@ class BodyModel:
         heads = self._forward(phenotype, {})["bone_heads"][0]
         return RigAxes.from_heads({b: heads[self.bone_index[b]] for b in RIG_BONES})
 
+    def rest_for(self, phenotype: dict | None) -> np.ndarray:
+        """Skin vertices ``(V, 3)`` of the body ``phenotype`` in its rest pose (not grounded)."""
+        return self._forward(phenotype, {})["vertices"][0][self.keep]
+
     def pose(self, phenotype: dict, rotations: dict[str, np.ndarray], n_frames: int) -> np.ndarray:
         """Skin vertices ``(T, V, 3)`` of the body ``phenotype`` posed by ``rotations`` (bone ->
         ``(T, 3, 3)`` local-ref deltas), before grounding."""
@@ -400,7 +405,7 @@ def make_body_set(path: str | os.PathLike, subjects: int | str | Sequence[str] =
                   motions: str | Sequence[str] = ("walk", "jumping_jacks", "punch"), frames: int = 64,
                   vertices: int | None = DEFAULT_VERTICES, seed: int = 0, fps: float = DEFAULT_FPS,
                   force: bool = False, tempo: str = "steady",
-                  on_sequence: Callable[[str], None] | None = None) -> Path:
+                  on_sequence: Callable[[str], None] | None = None, parts: Sequence[str] = ()) -> Path:
     """Write a Dyna-style HDF5 set of every subject doing every motion; returns its path.
 
     Layout: dataset ``faces`` ``(F, 3)`` int32 shared by all; one dataset ``SUBJECT_MOTION`` of
@@ -409,7 +414,10 @@ def make_body_set(path: str | os.PathLike, subjects: int | str | Sequence[str] =
     was made. ``tempo`` ``"varied"`` plays every performance with holds, slow-downs to a stop and
     speed-ups (:func:`meshseq.data.motions.varied_tempo`, drawn from its own stream, so the
     speed, amplitude and phase stay those of the steady set). Each performance's speed, amplitude and phase are drawn from ``seed``, the subject
-    and the motion, so the same arguments give the same file. Written atomically;
+    and the motion, so the same arguments give the same file. ``parts`` (names from
+    :data:`meshseq.data.accessories.PARTS`) appends separate parts carried by each body, bound to
+    the subject's rest pose (:func:`meshseq.data.accessories.attach`; file attributes
+    ``parts`` and ``body_vertices`` say so). Written atomically;
     ``on_sequence(name)`` is called after each sequence (progress).
     """
     import h5py
@@ -421,6 +429,7 @@ def make_body_set(path: str | os.PathLike, subjects: int | str | Sequence[str] =
         raise MeshseqError(f"--frames {frames}: need at least 2 frames")
     if tempo not in TEMPOS:
         raise MeshseqError(f"--tempo {tempo!r}: expected one of {', '.join(TEMPOS)}")
+    parts = resolve_parts(parts)
     body = body_model()
     full = vertices is None or int(vertices) >= body.n_vertices
     with atomic_output(target, force=force) as tmp:
@@ -433,6 +442,9 @@ def make_body_set(path: str | os.PathLike, subjects: int | str | Sequence[str] =
                         int(frames), fps, np.random.default_rng([int(seed), si, MOTIONS.index(motion), 1]))
                     seq = generate(subject, motion, int(frames), params=params,
                                    vertices=None if full else int(vertices), fps=fps, times=times)
+                    n_body = seq.vertices.shape[1]
+                    if parts:
+                        seq = _with_parts(seq, subject, None if full else int(vertices), parts)
                     if faces is None:
                         faces = seq.faces
                         h5.create_dataset("faces", data=faces.astype(np.int32))
@@ -449,7 +461,19 @@ def make_body_set(path: str | os.PathLike, subjects: int | str | Sequence[str] =
                             frames=int(frames), vertices=int(faces.max() + 1),
                             subjects=",".join(s.name for s in subs), motions=",".join(mots),
                             anny_version=_anny_version(), units="metres, z up, facing -y")
+            if parts:
+                h5.attrs.update(parts=",".join(parts), body_vertices=int(n_body))
     return target
+
+
+def _with_parts(seq: MeshSequence, subject: Subject, vertices: int | None, parts: Sequence[str]) -> MeshSequence:
+    """``seq`` with ``parts`` appended, bound to ``subject``'s rest pose (on the template of
+    ``vertices``, or the full skin for None)."""
+    rest = body_model().rest_for(subject.phenotype)
+    if vertices is not None:
+        rest = body_template(vertices).apply(rest[None])[0]
+    v, f = attach(seq.vertices, seq.faces, rest, parts)
+    return MeshSequence(vertices=v, faces=f, name=seq.name, fps=seq.fps)
 
 
 def _anny_version() -> str:
