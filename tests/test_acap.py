@@ -10,7 +10,8 @@ from hypothesis import strategies as st
 
 from conftest import shared_file
 from meshseq.acap import Reconstructor, Scaling, extract, features_to_gradients
-from meshseq.acap.features import IDENTITY_FEATURE, component_offsets
+from meshseq.acap.features import IDENTITY_FEATURE
+from meshseq.acap.parts import component_offsets
 from meshseq.acap.gradients import _svd_rotation, polar_decomposition
 from meshseq.acap.rotations import NO_ROTATION, axis_angle
 from meshseq.align import per_vertex_error
@@ -180,9 +181,30 @@ def test_multi_component_mesh_roundtrips_like_a_single_component():
     err_single = _rel_error(Reconstructor(single.vertices[0], single.faces).solve(
         extract(single.vertices, single.faces), target=single.vertices), single.vertices)
     assert err.mean() <= max(2 * err_single.mean(), 1e-3)
-    # without the carried offsets the parts land in their rest placement: far worse
-    err_rest = _rel_error(rec.solve(feats, target=v), v)
+    # the placement channels (9..11) carry the same offsets: no true offsets needed
+    assert feats.shape[-1] == 12 and extract(single.vertices, single.faces).shape[-1] == 9
+    assert np.abs(rec.solve(feats, target=v) - rec.solve(feats, offsets=offsets, target=v)).max() < 1e-9
+    # without them the parts land in their rest placement: far worse
+    err_rest = _rel_error(rec.solve(feats[..., :9], target=v), v)
     assert err_rest.mean() > 3 * err.mean()
+
+
+def test_placement_channels_are_zero_at_the_reference_and_constant_on_each_part():
+    from meshseq.acap.parts import offsets_from_channels, placement_channels
+    from meshseq.data.synthetic import multi_part
+
+    multi = multi_part(frames=6)
+    topo = Topology.from_faces(multi.faces, multi.n_vertices)
+    v = multi.vertices
+    ch = placement_channels(v, topo, v[0])  # (T, V, 3)
+    assert ch.shape == v.shape and np.abs(ch[0]).max() < 1e-12
+    labels = topo.component_labels
+    for c in range(topo.n_components):
+        part = ch[:, labels == c]
+        assert np.abs(part - part[:, :1]).max() < 1e-12
+    assert np.abs(offsets_from_channels(ch, topo, v[0]) - component_offsets(v, topo)).max() < 1e-12
+    # a translation of the whole mesh leaves the channels unchanged
+    assert np.abs(placement_channels(v + np.array([1.0, -2.0, 3.0]), topo, v[0]) - ch).max() < 1e-12
 
 
 def test_cotangent_weights_stay_finite_on_degenerate_triangles():

@@ -83,7 +83,8 @@ class Model:
         ckpt.check_topology(self.meta, faces, n_vertices, what)
 
     def features(self, vertices: np.ndarray, faces: np.ndarray | None = None) -> np.ndarray:
-        """Vertices ``(T, V, 3)`` -> scaled features ``(T, V, 9)`` float32 (against the reference)."""
+        """Vertices ``(T, V, 3)`` -> scaled features ``(T, V, C)`` float32 (against the reference; C = 9,
+        or 12 for a model of a multi-part mesh, whose last three place the parts: ``acap.parts``)."""
         from meshseq import acap
 
         v = np.asarray(vertices, dtype=np.float64)
@@ -94,11 +95,13 @@ class Model:
         elif v.shape[1] != self.config.n_vertices:
             raise MeshseqError(f"vertices have {v.shape[1]} vertices, the model expects {self.config.n_vertices}")
         consistency = self.meta.get("features", {}).get("consistency", "temporal")
-        f = acap.extract(v, self.faces, reference=self.reference, consistency=consistency)
+        f = acap.extract(v, self.faces, reference=self.reference, consistency=consistency,
+                         placement=self.config.channels > 9)
         return self.scaling.apply(f).astype(np.float32)
 
     def vertices(self, x) -> np.ndarray:
-        """Scaled features ``(T, V, 9)`` -> vertices ``(T, V, 3)`` (centroid at the origin).
+        """Scaled features ``(T, V, C)`` -> vertices ``(T, V, 3)`` (centroid at the origin; the parts of a
+        multi-part mesh where the features' placement channels put them).
 
         MeshseqError if a frame's features or vertices are not finite (a diverged roll-out), so
         nothing downstream writes or measures NaN frames.
@@ -178,10 +181,11 @@ class Model:
         from meshseq import synthesize
 
         f = np.asarray(frames)
-        if f.ndim != 3 or f.shape[-1] not in (3, 9) or f.shape[1] != self.config.n_vertices:
+        c = self.config.channels
+        if f.ndim != 3 or f.shape[-1] not in (3, c) or f.shape[1] != self.config.n_vertices:
             raise MeshseqError(f"frames must be (U, {self.config.n_vertices}, 3) vertices or (U, "
-                               f"{self.config.n_vertices}, 9) scaled features, got shape {f.shape}")
-        if f.shape[-1] == 9:
+                               f"{self.config.n_vertices}, {c}) scaled features, got shape {f.shape}")
+        if f.shape[-1] == c:
             return synthesize.predict(self, f, n_frames, sample=sample, pace=pace)
         given = np.asarray(f, dtype=np.float64)
         feats = self.features(given)
@@ -216,7 +220,7 @@ class Model:
         from meshseq import synthesize
 
         keys = np.asarray(keyframes, dtype=np.float64)
-        if keys.ndim == 3 and keys.shape[-1] == 9:
+        if keys.ndim == 3 and keys.shape[-1] == self.config.channels:
             raise MeshseqError(f"keyframes: Model.complete takes vertices (K, V, 3), got features {keys.shape}; "
                                "complete features with meshseq.synthesize.complete")
         if keys.ndim != 3 or len(keys) < 2 or keys.shape[-1] != 3:

@@ -8,7 +8,7 @@ traceback from deep inside torch or numpy, and never a model that trains to NaN.
 * :func:`check_model_meta` / :func:`check_state_meta`: JSON types by the schemas below
   (``int``; ``float`` = any finite number; ``str``; ``bool``; dicts of fixed keys, ``Opt`` for
   keys older checkpoints lack; lists; ``Each`` for dicts of any keys), then the values as the
-  configs check them (``ModelConfig``, ``TrainConfig``), the scaling (9 minima below 9 maxima),
+  configs check them (``ModelConfig``, ``TrainConfig``), the scaling (a minimum below a maximum per channel),
   the splits, the optimizer's hyper-parameters and the RNG states.
 * :func:`check_model_tensors` / :func:`check_state_tensors`: the names, shapes and dtypes the
   model described by the JSON has, finite values, faces inside the vertex range.
@@ -170,8 +170,10 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
     except MeshseqError as err:
         raise CheckpointError(file, "train", str(err)) from None
     model, topo = meta["model"], meta["topology"]
-    if model["channels"] != 9:
-        raise CheckpointError(file, "model.channels", f"{model['channels']}: ACAP features have 9 channels")
+    channels = model["channels"]
+    if channels not in (9, 12):
+        raise CheckpointError(file, "model.channels", f"{channels}: ACAP features have 9 channels (12 with the "
+                              "placement channels of a multi-part mesh)")
     if topo["n_vertices"] != model["n_vertices"] or topo["n_vertices"] < 1 or topo["n_faces"] < 1:
         raise CheckpointError(file, "topology", f"{topo['n_vertices']} vertices, {topo['n_faces']} faces, but the "
                               f"model has {model['n_vertices']} vertices")
@@ -179,8 +181,9 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
     if sc["mode"] not in SCALING_MODES:
         raise CheckpointError(file, "scaling.mode", f"{sc['mode']!r}: expected one of {', '.join(SCALING_MODES)}")
     lo, hi = np.asarray(sc["minimum"], dtype=np.float64), np.asarray(sc["maximum"], dtype=np.float64)
-    if lo.shape != (9,) or hi.shape != (9,):
-        raise CheckpointError(file, "scaling", f"expected 9 minima and 9 maxima, got {lo.size} and {hi.size}")
+    if lo.shape != (channels,) or hi.shape != (channels,):
+        raise CheckpointError(file, "scaling", f"expected {channels} minima and {channels} maxima, got {lo.size} "
+                              f"and {hi.size}")
     if not np.all(hi > lo):
         c = int(np.argmin(hi > lo))
         raise CheckpointError(file, "scaling", f"channel {c}: maximum {hi[c]} is not above minimum {lo[c]}")

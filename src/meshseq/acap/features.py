@@ -13,9 +13,9 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-import scipy.sparse as sp
 
 from meshseq.acap.gradients import GradientOperator, polar_soa
+from meshseq.acap.parts import placement_channels
 from meshseq.acap.rotations import CONSISTENCY_MODES, axis_angle, consistent_logs
 from meshseq.mesh import Topology
 
@@ -110,6 +110,7 @@ def extract(
     normal_row: bool = True,
     exact: bool = False,
     threads: int | None = None,
+    placement: bool | None = None,
 ) -> np.ndarray:
     """ACAP features ``(T, V, 9)`` of a sequence ``vertices (T, V, 3)`` sharing ``faces (F, 3)``.
 
@@ -125,6 +126,8 @@ def extract(
             reconstruction return the input (method.md 2.5), a chunk of frames at a time.
         threads: threads over frame chunks (default ``frame_threads()``); the result does not
             depend on it.
+        placement: append the three placement channels of :mod:`meshseq.acap.parts`, making the
+            features ``(T, V, 12)``; default: when the mesh has several connected components.
     """
     v = np.asarray(vertices, dtype=np.float64)
     if consistency not in CONSISTENCY_MODES:
@@ -136,8 +139,12 @@ def extract(
         from meshseq.acap.operators import ExactEncoder
 
         encoder = ExactEncoder(ref, topo, op.edge_weights)
-        return _pack_features(lambda frames: encoder(op(v[frames]), v[frames]), len(v), topo, consistency, threads)
-    return _pack_features(lambda frames: op(v[frames]), len(v), topo, consistency, threads)
+        feats = _pack_features(lambda frames: encoder(op(v[frames]), v[frames]), len(v), topo, consistency, threads)
+    else:
+        feats = _pack_features(lambda frames: op(v[frames]), len(v), topo, consistency, threads)
+    if topo.n_components > 1 if placement is None else placement:
+        feats = np.concatenate([feats, placement_channels(v, topo, ref)], axis=-1)
+    return feats
 
 
 def features_to_gradients(features):
@@ -174,25 +181,3 @@ def features_to_gradients(features):
     S = ((s00, s01, s02), (s01, s11, s12), (s02, s12, s22))
     T = [R[i][0] * S[0][j] + R[i][1] * S[1][j] + R[i][2] * S[2][j] for i in range(3) for j in range(3)]
     return xp.stack(T, -1).reshape(*T[0].shape, 3, 3)  # row-major: T[i][j] at [..., i, j]
-
-
-def component_offsets(vertices: np.ndarray, topology: Topology) -> np.ndarray:
-    """Centroid of each connected component minus that of component 0, ``(T, C, 3)``.
-
-    ACAP features carry no translation; on a mesh of several parts these offsets keep the parts'
-    relative placement (method.md 2.6).
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    cents = component_centroids(v, topology)
-    return cents - cents[:, :1]
-
-
-def component_centroids(vertices: np.ndarray, topology: Topology) -> np.ndarray:
-    """Centroid of each connected component, ``(T, C, 3)`` for vertices ``(T, V, 3)``."""
-    v = np.asarray(vertices, dtype=np.float64)
-    t, n = v.shape[0], v.shape[1]
-    labels = topology.component_labels
-    counts = np.bincount(labels, minlength=topology.n_components).astype(np.float64)
-    member = sp.csr_matrix((1.0 / counts[labels], (labels, np.arange(n))), shape=(topology.n_components, n))
-    flat = member @ np.ascontiguousarray(v.transpose(1, 0, 2)).reshape(n, 3 * t)  # (C, T*3)
-    return flat.reshape(-1, t, 3).transpose(1, 0, 2)

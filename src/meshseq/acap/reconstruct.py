@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshseq.acap.features import component_centroids, component_offsets, features_to_gradients, map_frame_chunks
+from meshseq.acap.features import features_to_gradients, map_frame_chunks
+from meshseq.acap.parts import component_centroids, component_offsets, offsets_from_channels
 from meshseq.acap.operators import ExactEncoder, FactoredMatrix, _free_vertices, _laplacian, _rhs_operator
 from meshseq.align import place
 from meshseq.mesh import Topology, cotangent_weights
@@ -102,10 +103,16 @@ class Reconstructor:
         target: np.ndarray | None = None,
         rigid: bool = False,
     ) -> np.ndarray:
-        """Vertices ``(T, V, 3)`` from ACAP features ``(T, V, 9)`` (unscaled); see ``solve_gradients``."""
+        """Vertices ``(T, V, 3)`` from ACAP features ``(T, V, 9)`` (unscaled); see ``solve_gradients``.
+
+        Features ``(T, V, 12)`` of a multi-part mesh carry its placement channels
+        (:mod:`meshseq.acap.parts`): the parts go where they say unless ``offsets`` is given.
+        """
         f = np.asarray(features, dtype=np.float64)
         single = f.ndim == 2
         f = f[None] if single else f
+        if offsets is None and f.shape[-1] > 9:
+            offsets = offsets_from_channels(f[..., 9:12], self.topology, self.reference)
         out = self._solve_rhs(
             lambda frames: self.rhs(features_to_gradients(f[frames])), len(f), offsets, target, rigid
         )

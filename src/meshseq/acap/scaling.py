@@ -1,7 +1,8 @@
 """Scaling of ACAP features to [-0.95, 0.95] and back (method.md 1.7).
 
 ``x' = 1.9 (x - min) / (max - min) - 0.95``. ``two-group`` (default, as the reference code): one
-min/max over the three rotation channels and one over the six S channels; ``per-channel``: one
+min/max over the three rotation channels and one over the six S channels (and, on a mesh of
+several parts, a third over its three placement channels, :mod:`meshseq.acap.parts`); ``per-channel``: one
 per channel (the paper's text); ``robust``: one range per group like ``two-group``, but from the
 ``ROBUST_QUANTILE`` and ``1 - ROBUST_QUANTILE`` quantiles of the group's training values instead
 of their min and max, so that a few outlier vertices (horse-gallop: 1% of its vertices stretch
@@ -21,12 +22,13 @@ import numpy as np
 SCALING_MODES = ("two-group", "per-channel", "robust")
 ROBUST_QUANTILE = 0.001
 _LOW, _HIGH = -0.95, 0.95
-_GROUPS = (slice(0, 3), slice(3, 9))
+_GROUPS = (slice(0, 3), slice(3, 9), slice(9, 12))  # rotation, S, placement
+_CHANNELS = (9, 12)
 
 
 @dataclass(frozen=True)
 class Scaling:
-    """Per-channel affine map; ``minimum`` and ``maximum`` are ``(9,)`` (equal within a group)."""
+    """Per-channel affine map; ``minimum`` and ``maximum`` are ``(C,)``, C = 9 or 12 (equal within a group)."""
 
     minimum: np.ndarray
     maximum: np.ndarray
@@ -34,17 +36,21 @@ class Scaling:
 
     @staticmethod
     def fit(features: np.ndarray, mode: str = "two-group") -> "Scaling":
-        """Fit on features ``(..., 9)`` (the training frames)."""
-        x = np.asarray(features, dtype=np.float64).reshape(-1, 9)
+        """Fit on features ``(..., C)`` (the training frames), C = 9 or 12."""
+        c = np.shape(features)[-1]
+        if c not in _CHANNELS:
+            raise ValueError(f"features have {c} channels; expected 9 (ACAP) or 12 (ACAP and placement)")
+        x = np.asarray(features, dtype=np.float64).reshape(-1, c)
+        groups = [g for g in _GROUPS if g.stop <= c]
         if mode == "two-group":
-            lo, hi = np.empty(9), np.empty(9)
-            for g in _GROUPS:
+            lo, hi = np.empty(c), np.empty(c)
+            for g in groups:
                 lo[g], hi[g] = x[:, g].min(), x[:, g].max()
         elif mode == "per-channel":
             lo, hi = x.min(axis=0), x.max(axis=0)
         elif mode == "robust":
-            lo, hi = np.empty(9), np.empty(9)
-            for g in _GROUPS:
+            lo, hi = np.empty(c), np.empty(c)
+            for g in groups:
                 lo[g], hi[g] = np.quantile(x[:, g], [ROBUST_QUANTILE, 1.0 - ROBUST_QUANTILE])
         else:
             raise ValueError(f"unknown scaling mode {mode!r}; expected one of {SCALING_MODES}")
@@ -58,12 +64,12 @@ class Scaling:
         return (_HIGH - _LOW) / (self.maximum - self.minimum)
 
     def apply(self, features):
-        """Features ``(..., 9)`` -> scaled, numpy or torch (dtype and device kept)."""
+        """Features ``(..., C)`` -> scaled, numpy or torch (dtype and device kept)."""
         lo, scale = self._as(features, self.minimum), self._as(features, self._scale)
         return (features - lo) * scale + _LOW
 
     def invert(self, scaled):
-        """Scaled ``(..., 9)`` -> features, numpy or torch."""
+        """Scaled ``(..., C)`` -> features, numpy or torch."""
         lo, scale = self._as(scaled, self.minimum), self._as(scaled, self._scale)
         return (scaled - _LOW) / scale + lo
 
@@ -81,8 +87,8 @@ class Scaling:
     @staticmethod
     def from_dict(d: dict) -> "Scaling":
         lo, hi = np.asarray(d["minimum"], dtype=np.float64), np.asarray(d["maximum"], dtype=np.float64)
-        if lo.shape != (9,) or hi.shape != (9,) or not np.all(hi > lo):
-            raise ValueError("scaling needs 9 minima below 9 maxima")
+        if lo.ndim != 1 or lo.size not in _CHANNELS or hi.shape != lo.shape or not np.all(hi > lo):
+            raise ValueError("scaling needs 9 (or 12) minima below as many maxima")
         return Scaling(lo, hi, str(d.get("mode", "two-group")))
 
     def save(self, path: str | Path) -> None:

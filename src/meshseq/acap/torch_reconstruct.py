@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from meshseq.acap.features import features_to_gradients
+from meshseq.acap.parts import component_centroids
 from meshseq.acap.reconstruct import Reconstructor
 
 #: cholespy's CUDA solver takes at most this many right-hand sides at once.
@@ -67,6 +68,9 @@ class TorchReconstructor(torch.nn.Module):
         self.register_buffer("labels", torch.as_tensor(labels, device=device))
         self.n_components = reconstructor.topology.n_components
         self.register_buffer("offsets", torch.as_tensor(reconstructor.reference_offsets, dtype=dtype, device=device))
+        rel = component_centroids(reconstructor.reference[None], reconstructor.topology)[0] - \
+            reconstructor.reference.mean(axis=0)  # (C, 3): parts' centroids from the mesh's, at rest
+        self.register_buffer("reference_placement", torch.as_tensor(rel, dtype=dtype, device=device))
         counts = np.bincount(labels, minlength=self.n_components)
         self.register_buffer("counts", torch.as_tensor(counts, dtype=dtype, device=device))
         reduced = reconstructor._factor.matrix.tocoo()
@@ -82,7 +86,8 @@ class TorchReconstructor(torch.nn.Module):
         self._max_rhs = _CUDA_MAX_RHS if device.type == "cuda" else None
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        """Vertices ``(B, V, 3)`` (centred) from unscaled features ``(B, V, 9)``."""
+        """Vertices ``(B, V, 3)`` (centred) from unscaled features ``(B, V, 9)``; features ``(B, V, 12)``
+        place the parts by their placement channels (``meshseq.acap.parts``)."""
         bsz, n = features.shape[0], self.n_vertices
         g = features_to_gradients(features)  # (B, V, 3, 3)
         tv = g.permute(1, 3, 0, 2).reshape(3 * n, 3 * bsz)  # [j*3+c, b*3+a]
@@ -91,8 +96,18 @@ class TorchReconstructor(torch.nn.Module):
         x = torch.zeros((n, 3 * bsz), dtype=x_free.dtype, device=x_free.device).index_copy(0, self.free, x_free)
         verts = x.reshape(n, bsz, 3).permute(1, 0, 2)  # (B, V, 3)
         if self.n_components > 1:
-            sums = torch.zeros((bsz, self.n_components, 3), dtype=verts.dtype, device=verts.device)
-            cents = sums.index_add(1, self.labels, verts) / self.counts[None, :, None]
-            shift = self.offsets[None] - (cents - cents[:, :1])
+            cents = self._part_means(verts)
+            offsets = self.offsets[None] if features.shape[-1] <= 9 else self._offsets(features[..., 9:12])
+            shift = offsets - (cents - cents[:, :1])
             verts = verts + shift[:, self.labels]
         return verts - verts.mean(dim=1, keepdim=True)
+
+    def _part_means(self, values: torch.Tensor) -> torch.Tensor:
+        """Mean of ``values (B, V, 3)`` over each part's vertices ``(B, C, 3)``."""
+        sums = torch.zeros((values.shape[0], self.n_components, 3), dtype=values.dtype, device=values.device)
+        return sums.index_add(1, self.labels, values) / self.counts[None, :, None]
+
+    def _offsets(self, placement: torch.Tensor) -> torch.Tensor:
+        """Parts' centroid offsets from component 0 ``(B, C, 3)`` from placement channels ``(B, V, 3)``."""
+        rel = self.reference_placement[None] + self._part_means(placement.to(self.reference_placement.dtype))
+        return rel - rel[:, :1]

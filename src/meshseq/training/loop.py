@@ -100,6 +100,9 @@ def train(
 
     setup = _Setup.of(data, config, model_options, found, splits, dist_info.world)
     config = setup.config
+    if is_main and setup.topology.n_components > 1:
+        log(f"the mesh has {setup.topology.n_components} separate parts: where each sits relative to the others "
+            "is learned as three extra feature channels")
     frames = torch.from_numpy(np.concatenate(setup.scaled).astype(np.float32)).to(dev)  # (sum T, V, 9)
     torch.manual_seed(config.seed)
     random.seed(config.seed)
@@ -163,7 +166,8 @@ def _every(k: int, it: int, iterations: int) -> bool:
 @dataclass
 class _Setup:
     """What a run trains with: options, model config, scaling and splits (stored ones on a resume,
-    fitted on ``data`` otherwise), and the scaled features ``[(T_d, V, 9)]`` float64."""
+    fitted on ``data`` otherwise), and the scaled features ``[(T_d, V, C)]`` float64 (C = 9, or 12 on a
+    mesh of several parts: ``meshseq.acap.parts``)."""
 
     config: TrainConfig
     model_config: ModelConfig
@@ -178,9 +182,11 @@ class _Setup:
 
         faces, V = data.faces, data.n_vertices
         topo = Topology.from_faces(faces, V)
+        C = data.features[0].shape[-1] if data.features[0].ndim == 3 else 9  # 12: ACAP and placement channels
         for name, f in zip(data.names, data.features):
-            if f.ndim != 3 or f.shape[1:] != (V, 9):
-                raise MeshseqError(f"{name}: features must have shape (T, {V}, 9), got {f.shape}")
+            if f.ndim != 3 or f.shape[1:] != (V, C) or C not in (9, 12):
+                raise MeshseqError(f"{name}: features must have shape (T, {V}, 9) (or 12 channels with the "
+                                   f"placement of a multi-part mesh, all data sets alike), got {f.shape}")
         if found is not None:
             meta = found.meta
             ckpt.check_topology(meta, faces, V, what="the training data")
@@ -191,10 +197,13 @@ class _Setup:
             config = TrainConfig.from_dict(meta["train"])
             config.iterations = iterations
             model_config = ModelConfig.from_dict(meta["model"])
+            if model_config.channels != C:
+                raise MeshseqError(f"--resume: {found.folder} was trained on features of {model_config.channels} "
+                                   f"channels, the data have {C}")
             scaling = Scaling.from_dict(meta["scaling"])
             splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
         else:
-            model_config = ModelConfig(n_vertices=V, **(model_options or {}))
+            model_config = ModelConfig(n_vertices=V, **((model_options or {}) | {"channels": C}))
             train_feats = np.concatenate([f[s.train_frames()] for f, s in zip(data.features, splits)])
             if len(train_feats) == 0:
                 raise MeshseqError(f"--holdout {config.holdout}: leaves no training frames")

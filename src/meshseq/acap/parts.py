@@ -1,0 +1,66 @@
+"""Where the parts of a multi-part mesh sit: three placement channels per vertex (method.md 2.6).
+
+ACAP features carry each part's shape and rotation but no translation, so on a mesh of several
+connected components (eyes, teeth, straps modelled apart from the body) they cannot say where a
+part sits relative to the others. The placement channels do: every vertex of part ``c`` carries
+
+    d_c(t) = (centroid_c(t) - centroid(t)) - (centroid_c(ref) - centroid(ref)),
+
+its part's displacement relative to the whole mesh's centroid (vertex-weighted), measured from
+the reference, so the reference frame has all zeros as its ACAP channels have the identity.
+The way back averages the channels over each part (the model predicts them per vertex) and gives
+the parts' centroid offsets from component 0 that ``Reconstructor`` places the parts at.
+
+Single-part meshes have no placement channels (their features stay 9 wide).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from meshseq.mesh import Topology
+
+#: Placement channels appended to the 9 ACAP channels of a multi-part mesh.
+PLACEMENT_DIM = 3
+
+
+def _relative_centroids(vertices: np.ndarray, topology: Topology) -> np.ndarray:
+    """Centroid of each part minus the mesh's centroid ``(T, C, 3)`` for ``(T, V, 3)``."""
+    v = np.asarray(vertices, dtype=np.float64)
+    return component_centroids(v, topology) - v.mean(axis=1, keepdims=True)
+
+
+def placement_channels(vertices: np.ndarray, topology: Topology, reference: np.ndarray) -> np.ndarray:
+    """Placement channels ``(T, V, 3)`` of ``vertices (T, V, 3)`` against ``reference (V, 3)``."""
+    d = _relative_centroids(vertices, topology) - _relative_centroids(np.asarray(reference)[None], topology)
+    return d[:, topology.component_labels]
+
+
+def offsets_from_channels(channels: np.ndarray, topology: Topology, reference: np.ndarray) -> np.ndarray:
+    """Centroid offsets of the parts from component 0 ``(T, C, 3)`` (what ``Reconstructor`` takes)
+    from placement channels ``(T, V, 3)``, each part's channels averaged over its vertices."""
+    rel = _relative_centroids(np.asarray(reference)[None], topology) + component_centroids(channels, topology)
+    return rel - rel[:, :1]
+
+
+def component_offsets(vertices: np.ndarray, topology: Topology) -> np.ndarray:
+    """Centroid of each connected component minus that of component 0, ``(T, C, 3)``.
+
+    ACAP features carry no translation; on a mesh of several parts these offsets keep the parts'
+    relative placement (method.md 2.6).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    cents = component_centroids(v, topology)
+    return cents - cents[:, :1]
+
+
+def component_centroids(vertices: np.ndarray, topology: Topology) -> np.ndarray:
+    """Centroid of each connected component, ``(T, C, 3)`` for vertices ``(T, V, 3)``."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t, n = v.shape[0], v.shape[1]
+    labels = topology.component_labels
+    counts = np.bincount(labels, minlength=topology.n_components).astype(np.float64)
+    member = sp.csr_matrix((1.0 / counts[labels], (labels, np.arange(n))), shape=(topology.n_components, n))
+    flat = member @ np.ascontiguousarray(v.transpose(1, 0, 2)).reshape(n, 3 * t)  # (C, T*3)
+    return flat.reshape(-1, t, 3).transpose(1, 0, 2)

@@ -1,0 +1,136 @@
+"""Meshes of several parts: the placement channels put every part where it belongs (acap.parts)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from meshseq.acap import Reconstructor, extract
+from meshseq.acap.parts import component_offsets
+from meshseq.align import per_vertex_error
+from meshseq.mesh import Topology, bounding_box_diagonal
+
+
+def _rel_error(out, v):
+    return per_vertex_error(out, v) / bounding_box_diagonal(v)
+
+
+@pytest.fixture(scope="module")
+def multi(tmp_path_factory):
+    from meshseq.data.synthetic import multi_part
+    from meshseq.io import save_sequence
+
+    seq = multi_part(frames=48)
+    path = tmp_path_factory.mktemp("parts") / "multi.npz"
+    save_sequence(seq, path)
+    return seq, path
+
+
+@pytest.fixture(scope="module")
+def trained(multi, tmp_path_factory):
+    """A tiny model trained briefly on the multi-part sequence: its run folder."""
+    from meshseq.train import TrainConfig, load_training_data, train
+
+    from conftest import torch_threads
+
+    run = tmp_path_factory.mktemp("parts") / "run"
+    with torch_threads(1):
+        train(load_training_data([str(multi[1])]), run,
+              TrainConfig(iterations=30, window=12, batch=4, eval_every=0, checkpoint_every=0, log_every=0),
+              model_options={"latent": 16, "lstm_layers": 2}, device="cpu", progress=False, log=lambda m: None)
+    return run
+
+
+def test_frames_through_a_trained_model_land_at_the_acap_floor(multi, trained):
+    from meshseq.api import load
+
+    seq, _ = multi
+    v = seq.vertices
+    model = load(trained)
+    assert model.config.channels == 12
+    through = model.vertices(model.features(v))  # no true offsets given
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    rec = Reconstructor(v[0], seq.faces)
+    floor = rec.solve(extract(v, seq.faces)[..., :9], offsets=component_offsets(v, topo))
+    centred = v - v.mean(axis=1, keepdims=True)
+    err, err_floor = _rel_error(through, centred).mean(), _rel_error(floor, centred).mean()
+    assert err <= 2 * err_floor
+    rest = _rel_error(rec.solve(extract(v, seq.faces)[..., :9]), centred).mean()  # parts at rest offsets
+    assert rest > 20 * err
+
+
+def test_prediction_and_completion_place_the_parts(multi, trained):
+    from meshseq.api import load
+
+    seq, _ = multi
+    v = seq.vertices
+    model = load(trained)
+    pred = model.predict(v[:3], 10)
+    assert pred.shape == (13,) + v.shape[1:] and np.isfinite(pred).all()
+    assert np.array_equal(pred[:3], v[:3])
+    out = model.complete(v[[10, 20]], 9, samples=2)
+    assert np.array_equal(out[:, 0], np.repeat(v[None, 10], 2, 0))
+    assert np.array_equal(out[:, -1], np.repeat(v[None, 20], 2, 0))
+    # every part's centroid stays within the motion's reach of the truth's (the limb moves ~the diagonal)
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    got = component_offsets(out[0], topo)
+    truth = component_offsets(v[10:21], topo)
+    assert np.abs(got - truth).max() < 0.25 * bounding_box_diagonal(v)
+
+
+def test_tiny_and_degenerate_parts_are_placed_and_shaped_exactly():
+    from meshseq.data.synthetic import multi_part
+
+    seq = multi_part(frames=16)
+    v, f = seq.vertices, seq.faces
+    t, n = v.shape[:2]
+    angle = np.linspace(0.0, 2.5, t)
+    rot = np.zeros((t, 3, 3))
+    rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1] = np.cos(angle), -np.sin(angle), np.sin(angle), np.cos(angle)
+    rot[:, 2, 2] = 1.0
+    parts = {  # a single triangle, a collinear (zero-area) one, a quad with a zero-area sliver
+        "triangle": (np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0.05]]), np.array([[0, 1, 2]])),
+        "collinear": (np.array([[0, 0, 0], [0.1, 0, 0], [0.2, 0, 0]]), np.array([[0, 1, 2]])),
+        "sliver": (np.array([[0, 0, 0], [0.1, 0, 0], [0.1, 0.1, 0], [0, 0.1, 0]]), np.array([[0, 1, 2], [0, 2, 3],
+                                                                                            [0, 1, 1]])),
+    }
+    for name, (shape, tri) in parts.items():
+        carried = np.einsum("tij,pj->tpi", rot, shape) + v[:, :1] + 0.5  # turns and moves with the limb's tip
+        vv, ff = np.concatenate([v, carried], 1), np.concatenate([f, tri + n])
+        feats = extract(vv, ff)
+        assert np.isfinite(feats).all(), name
+        out = Reconstructor(vv[0], ff).solve(feats, target=vv)
+        assert np.abs(out[:, n:] - vv[:, n:]).max() < 1e-9, name
+
+
+def test_a_single_part_mesh_keeps_nine_channels():
+    from meshseq.data.synthetic import twisting_limb
+
+    seq = twisting_limb(frames=4)
+    assert extract(seq.vertices, seq.faces).shape[-1] == 9
+    assert extract(seq.vertices, seq.faces, placement=True).shape[-1] == 12
+
+
+def test_info_and_roundtrip_report_the_parts(multi, capsys):
+    from meshseq.cli import main
+
+    assert main(["info", str(multi[1]), "--no-jumps"]) == 0
+    out = capsys.readouterr().out
+    assert "3 separate parts" in out and "three more channels" in out
+    assert main(["roundtrip", str(multi[1]), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["parts"] == 3
+    assert report["mean_error_rel_from_features"] <= 1.01 * report["mean_error_rel"] + 1e-7
+    assert report["mean_error_rel_rest_placement"] > 20 * report["mean_error_rel"]
+
+
+def test_checkpoint_schema_takes_twelve_channels_and_refuses_others(trained):
+    from meshseq.checkpoint import latest_checkpoint
+    from meshseq.checkpoint_schema import CheckpointError, check_model_meta
+
+    file = latest_checkpoint(trained) / "model.json"
+    meta = json.loads(file.read_text())
+    check_model_meta(meta, file)
+    meta["model"]["channels"] = 10
+    with pytest.raises(CheckpointError, match="channels"):
+        check_model_meta(meta, file)
