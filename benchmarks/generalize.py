@@ -184,6 +184,8 @@ def main(argv=None) -> None:
     p.add_argument("--sets", nargs="+", default=["horse-gallop", "pcow", "crane", "bodies"])
     p.add_argument("--blocks", nargs="+", default=["end"], help="where the held-out block lies: end, start or a fraction")
     p.add_argument("--bodies", default=None, help="make-bodies HDF5 for the set 'bodies'")
+    p.add_argument("--bodies-name", default="bodies", help="the body set's name in the records (e.g. bodies-parts "
+                   "for a set made with make-bodies --parts)")
     p.add_argument("--hold-subject", default="male_slim")
     p.add_argument("--hold-motion", default="shake_arms")
     p.add_argument("--iterations", type=int, default=2000)
@@ -209,7 +211,7 @@ def main(argv=None) -> None:
                 raise SystemExit("--sets bodies needs --bodies FILE.h5 (meshseq make-bodies)")
             specs, held = body_specs(args.bodies, args.hold_subject, args.hold_motion)
             # the training sequences' own held-out ends, then the unseen sequences whole
-            run_set(name, specs, [(None, s) for s in held], args, "end", holdout=0.0)
+            run_set(args.bodies_name, specs, [(None, s) for s in held], args, "end", holdout=0.0)
             continue
         spec = str(SHARED / f"{name}.npz") if (SHARED / f"{name}.npz").is_file() else name
         for at in args.blocks:
