@@ -163,7 +163,7 @@ def line(tag: str, b: dict) -> str:
 def table(files: list[str]) -> str:
     """Markdown: one row per block, ratios against the best baseline (prediction, h10/h15,
     u1/u3, raw and rigid), against the better interpolation (completion), motion level."""
-    rows = ["| set, block | sequence | novelty | motion | u1 h10 | u1 h15 | u3 h10 | u3 h15 | rigid u3 h15 | "
+    rows = ["| set, block, iterations | sequence | novelty | motion | u1 h10 | u1 h15 | u3 h10 | u3 h15 | rigid u3 h15 | "
             "gap 5 | gap 10 | gap 20 | gap 30 | motion of 50 |", "|" + "---|" * 14]
     cells = [("u1", "10", "centroid"), ("u1", "15", "centroid"), ("u3", "10", "centroid"), ("u3", "15", "centroid"),
              ("u3", "15", "rigid")]
@@ -172,7 +172,8 @@ def table(files: list[str]) -> str:
         for b in rec["blocks"]:
             pred = [f"{prediction_ratio(b, *cell):.2f}" for cell in cells]
             comp = [f"{completion_ratio(b, g):.2f}" if g in b["completion"] else "-" for g in ("5", "10", "20", "30")]
-            rows.append(f"| {rec['set']} @ {rec['holdout_at']} | {Path(b['sequence']).name} | {b['novelty']:.1f} | "
+            rows.append(f"| {rec['set']} @ {rec['holdout_at']}, {rec['iteration']} it | {Path(b['sequence']).name} | "
+                        f"{b['novelty']:.1f} | "
                         f"{b['motion_level']:.2f} | {' | '.join(pred)} | {' | '.join(comp)} | {b['motion_50']:.2f} |")
     return "\n".join(rows)
 

@@ -24,7 +24,7 @@ def _generate(paper, records: Path, tmp_path: Path) -> tuple[str, str]:
     readme = tmp_path / "README.md"
     shutil.copy(ROOT / "README.md", readme)
     out = tmp_path / "results.md"
-    paper.write_markdown(paper.collect(records), "auto", out, readme)
+    paper.write_markdown(paper.collect(records), "auto", out, readme, paper.generalization_records(records))
     return out.read_text(), readme.read_text()
 
 
