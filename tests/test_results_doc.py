@@ -55,3 +55,21 @@ def test_the_table_follows_the_records(tmp_path):
     results, readme = _generate(paper, records, tmp_path)
     row = f"| bodies | 7000 of 7000 | {2 * min(before):.2f}-{2 * max(before):.2f} "
     assert row in results and row in readme
+
+
+def test_the_generalisation_table_follows_its_records(tmp_path):
+    """Doubling ours' u1 h10 error in a generalisation record doubles its ratio in results.md."""
+    paper = _paper()
+    records = tmp_path / "records"
+    shutil.copytree(RECORDS, records)
+    files = paper.generalization_records(records)
+    assert files, "docs/results/generalize/ holds no records"
+    rec = json.loads(files[0].read_text())
+    block = rec["blocks"][0]
+    ours = block["prediction"]["u1"]["ours"]["centroid"]
+    best = min(block["prediction"]["u1"][m]["centroid"]["10"] for m in block["prediction"]["u1"] if m != "ours")
+    ours["10"] = 2 * ours["10"]
+    files[0].write_text(json.dumps(rec))
+    results, _ = _generate(paper, records, tmp_path)
+    row = next(line for line in results.splitlines() if line.startswith(f"| {rec['set']} @ "))
+    assert row.split(" | ")[4] == f"{ours['10'] / best:.2f}"
