@@ -109,7 +109,8 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
                          eval_every=0,
                          checkpoint_every=min(500, args.iterations), keep=2)
     t0 = time.perf_counter()
-    train(data, run, config, device=args.device, resume=bool(ckpt.list_checkpoints(run)), progress=not args.quiet)
+    resume = bool(ckpt.list_checkpoints(run))  # a run stopped before its first checkpoint starts over
+    train(data, run, config, device=args.device, resume=resume, force=not resume, progress=not args.quiet)
     seconds = time.perf_counter() - t0
     model = meshseq.load(run)
     meta = json.loads((ckpt.resolve(run) / "model.json").read_text())
