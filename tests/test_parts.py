@@ -134,3 +134,21 @@ def test_checkpoint_schema_takes_twelve_channels_and_refuses_others(trained):
     meta["model"]["channels"] = 10
     with pytest.raises(CheckpointError, match="channels"):
         check_model_meta(meta, file)
+
+
+def test_a_part_collapsed_to_a_point_in_the_reference_is_refused_in_one_line(tmp_path, capsys):
+    from meshseq.cli import main
+    from meshseq.data.synthetic import multi_part
+    from meshseq.io import MeshSequence, save_sequence
+
+    seq = multi_part(frames=6)
+    v, n = seq.vertices, seq.n_vertices
+    grow = np.linspace(0.0, 1.0, len(v))[:, None, None] * np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0.05]])
+    vv = np.concatenate([v, grow + v[:, :1] + 0.5], 1)  # a triangle that grows from a point at frame 0
+    path = tmp_path / "collapsed.npz"
+    save_sequence(MeshSequence(vv, np.concatenate([seq.faces, [[n, n + 1, n + 2]]]), name="collapsed"), path)
+    for argv in (["roundtrip", str(path)], ["train", str(path), "--out", str(tmp_path / "run"), "--iterations", "1"]):
+        assert main(argv) == 2
+        errors = [line for line in capsys.readouterr().err.splitlines() if "warning" not in line]
+        assert len(errors) == 1 and "frame 0: part 3" in errors[0] and "one point" in errors[0], errors
+    assert not (tmp_path / "run").exists()

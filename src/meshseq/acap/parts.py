@@ -64,3 +64,29 @@ def component_centroids(vertices: np.ndarray, topology: Topology) -> np.ndarray:
     member = sp.csr_matrix((1.0 / counts[labels], (labels, np.arange(n))), shape=(topology.n_components, n))
     flat = member @ np.ascontiguousarray(v.transpose(1, 0, 2)).reshape(n, 3 * t)  # (C, T*3)
     return flat.reshape(-1, t, 3).transpose(1, 0, 2)
+
+
+def collapsed_parts(reference: np.ndarray, topology: Topology) -> np.ndarray:
+    """Indices of the parts whose vertices all sit at one point in ``reference (V, 3)``: against such a
+    reference a part's shape cannot be encoded (every gradient maps zero-length edges), only its place."""
+    q = np.asarray(reference, dtype=np.float64)
+    labels, n = topology.component_labels, topology.n_components
+    lo = np.full((n, 3), np.inf)
+    hi = np.full((n, 3), -np.inf)
+    np.minimum.at(lo, labels, q)
+    np.maximum.at(hi, labels, q)
+    size = (hi - lo).max(axis=1)
+    return np.flatnonzero(size <= 1e-12 * max(float(np.ptp(q, axis=0).max()), 1e-300))
+
+
+def check_reference_parts(reference: np.ndarray, topology: Topology, where: str) -> None:
+    """MeshseqError naming ``where`` (the file and frame) when a part of the reference is one point."""
+    from meshseq.errors import MeshseqError
+
+    bad = collapsed_parts(reference, topology)
+    if len(bad):
+        part = int(bad[0])
+        count = int((topology.component_labels == part).sum())
+        raise MeshseqError(f"{where}: part {part} (of {topology.n_components}; {count} vertices from vertex "
+                           f"{int(topology.component_roots[part])}) has all its vertices at one point, so its shape "
+                           "cannot be taken against this frame; use a reference frame where it has a size, or remove it")

@@ -84,6 +84,11 @@ def _reference(seq, k: int) -> np.ndarray:
     if not np.ptp(seq.vertices[k], axis=0).any():
         raise MeshseqError(f"{seq.source or seq.name} frame {k % seq.n_frames}: all vertices are at one point; "
                            "ACAP features need a reference frame of non-zero size (--reference-frame)")
+    from meshseq.acap.parts import check_reference_parts
+    from meshseq.mesh import Topology
+
+    check_reference_parts(seq.vertices[k], Topology.from_faces(seq.faces, seq.n_vertices),
+                          f"{seq.source or seq.name} frame {k % seq.n_frames}")
     return seq.vertices[k]
 
 

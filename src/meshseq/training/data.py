@@ -55,6 +55,10 @@ def load_training_data(specs: list[str], consistency: str = "temporal") -> Train
                 "must share one mesh connectivity"
             )
     reference = first.vertices[0].copy()
+    from meshseq.acap.parts import check_reference_parts
+    from meshseq.mesh import Topology
+
+    check_reference_parts(reference, Topology.from_faces(first.faces, first.n_vertices), f"{specs[0]} frame 0")
     feats = [acap.extract(s.vertices, s.faces, reference=reference, consistency=consistency) for s in seqs]
     return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference, consistency)
 
