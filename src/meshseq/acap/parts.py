@@ -1,4 +1,5 @@
-"""Where the parts of a multi-part mesh sit: three placement channels per vertex (method.md 2.6).
+"""Where the parts of a multi-part mesh sit: three placement channels per vertex (method.md section 2,
+"Meshes of several parts").
 
 ACAP features carry each part's shape and rotation but no translation, so on a mesh of several
 connected components (eyes, teeth, straps modelled apart from the body) they cannot say where a
@@ -20,10 +21,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from meshseq.mesh import Topology
-
-#: Placement channels appended to the 9 ACAP channels of a multi-part mesh.
-PLACEMENT_DIM = 3
-
 
 def _relative_centroids(vertices: np.ndarray, topology: Topology) -> np.ndarray:
     """Centroid of each part minus the mesh's centroid ``(T, C, 3)`` for ``(T, V, 3)``."""
@@ -48,7 +45,7 @@ def component_offsets(vertices: np.ndarray, topology: Topology) -> np.ndarray:
     """Centroid of each connected component minus that of component 0, ``(T, C, 3)``.
 
     ACAP features carry no translation; on a mesh of several parts these offsets keep the parts'
-    relative placement (method.md 2.6).
+    relative placement.
     """
     v = np.asarray(vertices, dtype=np.float64)
     cents = component_centroids(v, topology)
