@@ -9,7 +9,8 @@ with the cotangent Laplacian L of the reference mesh. ``b`` is linear in the gra
 of the gradients, ``b[:, a] = B vec(T[:, a, :])`` with a sparse ``B`` of shape ``(V, 3V)``. L has one
 constant null space per connected component: one vertex of each is pinned, the reduced matrix is
 factored once per reference mesh, and every frame (every right-hand side) is solved against it.
-Each component is then moved to its centroid offset (method.md 2.6).
+Each component is then moved to its centroid offset: given, from the features' placement channels
+(``meshseq.acap.parts``), or as in the reference.
 
 The exact encoding (method.md 2.5) corrects least-squares gradients T0 by the minimum-norm change
 ``dT = B^T (B B^T)^-1 (L p - B T0)`` so that the solve returns the input exactly.
