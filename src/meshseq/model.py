@@ -196,14 +196,16 @@ def _model_config_problem(values: dict) -> tuple[str, object, str] | None:
 
 
 def _csr(matrix) -> torch.Tensor:
-    m = matrix.tocoo()
-    ij = torch.from_numpy(np.stack([m.row, m.col])).long()
+    """A float32 torch CSR tensor of a scipy sparse matrix (duplicates summed, columns sorted), built
+    from the CSR arrays directly (through COO, ``coalesce`` took 0.2 s for crane's ring matrix)."""
+    m = matrix.tocsr(copy=True)
+    m.sum_duplicates()  # (also sorts the column indices)
     # the invariant checks asked for explicitly (a context, not the keyword: torch 2.11 warns that
     # they are "implicitly disabled" when only the keyword asks for them)
     with warnings.catch_warnings(), torch.sparse.check_sparse_tensor_invariants():
         warnings.filterwarnings("ignore", message=".*[Ss]parse CSR tensor support is in beta.*")
-        t = torch.sparse_coo_tensor(ij, torch.from_numpy(m.data).float(), m.shape)
-        return t.coalesce().to_sparse_csr()
+        return torch.sparse_csr_tensor(torch.from_numpy(m.indptr).long(), torch.from_numpy(m.indices).long(),
+                                       torch.from_numpy(m.data).float(), m.shape)
 
 
 class _SparseMean(torch.autograd.Function):
