@@ -59,13 +59,14 @@ def novelty(train_feats: np.ndarray, block_feats: np.ndarray) -> float:
     return float(np.median(nearest) / max(step, 1e-12))
 
 
-def score_block(model, vae, verts: np.ndarray, feats: np.ndarray, train_feats: np.ndarray, lo: int, hi: int) -> dict:
-    """Every figure of one held-out block ``[lo, hi)`` of one sequence."""
+def score_block(model, vae, verts: np.ndarray, feats: np.ndarray, train_feats: np.ndarray, train_level: float,
+                lo: int, hi: int) -> dict:
+    """Every figure of one held-out block ``[lo, hi)`` of one sequence; ``train_level``: the training
+    frames' mean vertex motion per frame (``training_level``)."""
     from meshseq.evaluate import completion_errors, feature_change, prediction_errors, prediction_starts
     from meshseq.pace import pace_levels, pace_table, step_levels
     from meshseq.plots import feature_change as relative_change
 
-    train_level = float(np.mean(step_levels(verts[:lo] if lo > 1 else verts[hi:])))
     out = {"frames": [int(lo), int(hi)], "novelty": novelty(train_feats, feats[lo:hi]),
            "motion_level": float(np.mean(step_levels(verts[lo:hi])) / max(train_level, 1e-12)),
            "prediction": {}, "completion": {}}
@@ -83,6 +84,16 @@ def score_block(model, vae, verts: np.ndarray, feats: np.ndarray, train_feats: n
         levels = pace_levels(model, verts, feats, starts3, 3, 15)
         out["pace"] = pace_table(levels, train_level)
     return out
+
+
+def training_level(specs: list[str], splits) -> float:
+    """Mean vertex motion per frame (``pace.step_levels``) over the training segments of ``specs``."""
+    from meshseq.io import load_sequence
+    from meshseq.pace import step_levels
+
+    levels = [step_levels(load_sequence(spec).vertices[a:b]) for spec, split in zip(specs, splits)
+              for a, b in split.train if b - a > 1]
+    return float(np.concatenate(levels).mean())
 
 
 def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], args, holdout_at: str,
@@ -117,12 +128,13 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
     train_feats = np.concatenate([model.scaling.apply(f)[a:b] for f, s in zip(data.features, splits) for a, b in s.train])
     vae = train_vae_baseline(model, train_feats)
+    train_level = training_level(specs, splits)
     blocks = []
     for index, spec in scored:
         verts = load_sequence(spec).vertices.astype(np.float64)
         feats = model.features(verts)
         lo, hi = (splits[index].heldout if index is not None else (0, len(verts)))
-        block = score_block(model, vae, verts, feats, train_feats, lo, hi)
+        block = score_block(model, vae, verts, feats, train_feats, train_level, lo, hi)
         block["sequence"] = spec
         blocks.append(block)
         print(line(tag, block), flush=True)
