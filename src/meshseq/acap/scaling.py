@@ -70,6 +70,11 @@ class Scaling:
 
     def invert(self, scaled):
         """Scaled ``(..., C)`` -> features, numpy or torch."""
+        if isinstance(scaled, np.ndarray):  # the same operations, in place after the first (no temporaries)
+            out = np.asarray(scaled - _LOW, dtype=np.result_type(scaled, self._scale))
+            out /= self._scale
+            out += self.minimum
+            return out
         lo, scale = self._as(scaled, self.minimum), self._as(scaled, self._scale)
         return (scaled - _LOW) / scale + lo
 
