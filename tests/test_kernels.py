@@ -384,3 +384,28 @@ def test_a_stale_build_lock_is_removed_and_a_fresh_one_kept(tmp_path):
         assert kernels.clear_stale_lock(tmp_path)
     assert not lock.exists()
     assert not kernels.clear_stale_lock(tmp_path)  # nothing there: nothing to do
+
+
+def test_waiting_for_a_build_lock_ends_when_it_goes_or_turns_stale(tmp_path):
+    import os
+    import threading
+    import time
+    import warnings
+
+    from meshseq import kernels
+
+    assert kernels.wait_for_build_lock(tmp_path, poll_s=0.01) < 0.5  # no lock: no wait
+    lock = tmp_path / "lock"
+    lock.touch()
+    threading.Timer(0.3, lock.unlink).start()  # another process's build ends
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        waited = kernels.wait_for_build_lock(tmp_path, poll_s=0.01)
+    assert 0.25 < waited < 5 and any("waiting for another process" in str(w.message) for w in caught)
+    lock.touch()
+    old = time.time() - 3600
+    os.utime(lock, (old, old))  # a killed build's lock
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert kernels.wait_for_build_lock(tmp_path, poll_s=0.01) < 0.5
+    assert not lock.exists()

@@ -85,7 +85,7 @@ def cpu_kernels_available() -> bool:
             root = os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()  # as torch's own builds
             build = Path(root) / f"meshseq_kernels-{py}-torch{torch.__version__}-{cpu_signature()}"
             build.mkdir(parents=True, exist_ok=True)
-            clear_stale_lock(build)
+            wait_for_build_lock(build)
             import hashlib
 
             headers = hashlib.sha1(b"".join(p.read_bytes() for p in _HEADERS)).hexdigest()[:12]
@@ -141,6 +141,26 @@ def clear_stale_lock(build: Path, max_age_s: float = 600.0) -> bool:
     except FileNotFoundError:
         pass
     return False
+
+
+def wait_for_build_lock(build: Path, max_age_s: float = 600.0, poll_s: float = 1.0) -> float:
+    """Wait while another process builds the kernels in ``build`` (its ``lock`` file exists), saying so
+    once; a lock older than ``max_age_s`` is a killed build's and is removed (``clear_stale_lock``).
+
+    torch's own wait has no end, and when the lock of a killed build goes it loads a build that was
+    never finished (and meshseq falls back to the slow path). Returns the seconds waited.
+    """
+    import time
+
+    lock, start, said = build / "lock", time.monotonic(), False
+    while lock.exists() and not clear_stale_lock(build, max_age_s):
+        if not said:
+            warnings.warn(f"meshseq: waiting for another process's kernel build ({lock}); a lock older than "
+                          f"{max_age_s / 60:g} minutes is taken for a killed build's and removed", RuntimeWarning,
+                          stacklevel=3)
+            said = True
+        time.sleep(poll_s)
+    return time.monotonic() - start
 
 
 def _use_cpu_kernels(x: torch.Tensor) -> bool:
