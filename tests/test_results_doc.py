@@ -71,5 +71,6 @@ def test_the_generalisation_table_follows_its_records(tmp_path):
     ours["10"] = 2 * ours["10"]
     files[0].write_text(json.dumps(rec))
     results, _ = _generate(paper, records, tmp_path)
-    row = next(line for line in results.splitlines() if line.startswith(f"| {rec['set']} @ "))
+    seq = block["sequence"].replace("\\", "/").split("/")[-1]
+    row = next(line for line in results.splitlines() if line.startswith(f"| {rec['set']} ") and f" | {seq} | " in line)
     assert row.split(" | ")[4] == f"{ours['10'] / best:.2f}"
