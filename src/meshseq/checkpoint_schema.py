@@ -153,6 +153,7 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
 
     ``iteration``: the one the folder's name says, if it is a checkpoint folder.
     """
+    from meshseq.acap.parts import CHANNEL_COUNTS
     from meshseq.acap.scaling import SCALING_MODES
     from meshseq.model import ModelConfig
     from meshseq.training.config import TrainConfig
@@ -171,7 +172,7 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
         raise CheckpointError(file, "train", str(err)) from None
     model, topo = meta["model"], meta["topology"]
     channels = model["channels"]
-    if channels not in (9, 12):
+    if channels not in CHANNEL_COUNTS:
         raise CheckpointError(file, "model.channels", f"{channels}: ACAP features have 9 channels (12 with the "
                               "placement channels of a multi-part mesh)")
     if topo["n_vertices"] != model["n_vertices"] or topo["n_vertices"] < 1 or topo["n_faces"] < 1:

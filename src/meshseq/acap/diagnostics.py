@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from meshseq.acap.parts import CHANNEL_COUNTS
 from meshseq.acap.rotations import JUMP_MOTION, JUMP_STEP, relative_angles
 from meshseq.errors import MeshseqError
 
@@ -18,7 +19,7 @@ def rotation_logs(features: np.ndarray) -> np.ndarray:
     """Rotation vectors ``Theta w`` ``(..., 3)`` of ACAP features ``(..., 9)`` (or ``(..., 12)`` with
     the placement channels of a multi-part mesh; method.md 1.6)."""
     q = np.asarray(features)
-    if q.ndim < 1 or q.shape[-1] not in (9, 12):
+    if q.ndim < 1 or q.shape[-1] not in CHANNEL_COUNTS:
         raise MeshseqError(f"ACAP features must have 9 (or 12) channels in the last axis; got shape {q.shape}")
     return np.stack([-q[..., 2], q[..., 1], -q[..., 0]], axis=-1).astype(np.float64)
 

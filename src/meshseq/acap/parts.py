@@ -22,7 +22,11 @@ import scipy.sparse as sp
 
 from meshseq.mesh import Topology
 
-def _relative_centroids(vertices: np.ndarray, topology: Topology) -> np.ndarray:
+#: The channel counts of features: the 9 ACAP channels alone, or with the 3 placement channels.
+CHANNEL_COUNTS = (9, 12)
+
+
+def relative_centroids(vertices: np.ndarray, topology: Topology) -> np.ndarray:
     """Centroid of each part minus the mesh's centroid ``(T, C, 3)`` for ``(T, V, 3)``."""
     v = np.asarray(vertices, dtype=np.float64)
     return component_centroids(v, topology) - v.mean(axis=1, keepdims=True)
@@ -30,14 +34,14 @@ def _relative_centroids(vertices: np.ndarray, topology: Topology) -> np.ndarray:
 
 def placement_channels(vertices: np.ndarray, topology: Topology, reference: np.ndarray) -> np.ndarray:
     """Placement channels ``(T, V, 3)`` of ``vertices (T, V, 3)`` against ``reference (V, 3)``."""
-    d = _relative_centroids(vertices, topology) - _relative_centroids(np.asarray(reference)[None], topology)
+    d = relative_centroids(vertices, topology) - relative_centroids(np.asarray(reference)[None], topology)
     return d[:, topology.component_labels]
 
 
 def offsets_from_channels(channels: np.ndarray, topology: Topology, reference: np.ndarray) -> np.ndarray:
     """Centroid offsets of the parts from component 0 ``(T, C, 3)`` (what ``Reconstructor`` takes)
     from placement channels ``(T, V, 3)``, each part's channels averaged over its vertices."""
-    rel = _relative_centroids(np.asarray(reference)[None], topology) + component_centroids(channels, topology)
+    rel = relative_centroids(np.asarray(reference)[None], topology) + component_centroids(channels, topology)
     return rel - rel[:, :1]
 
 

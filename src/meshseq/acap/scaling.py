@@ -19,11 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from meshseq.acap.parts import CHANNEL_COUNTS
+
 SCALING_MODES = ("two-group", "per-channel", "robust")
 ROBUST_QUANTILE = 0.001
 _LOW, _HIGH = -0.95, 0.95
 _GROUPS = (slice(0, 3), slice(3, 9), slice(9, 12))  # rotation, S, placement
-_CHANNELS = (9, 12)
 
 
 @dataclass(frozen=True)
@@ -38,7 +39,7 @@ class Scaling:
     def fit(features: np.ndarray, mode: str = "two-group") -> "Scaling":
         """Fit on features ``(..., C)`` (the training frames), C = 9 or 12."""
         c = np.shape(features)[-1]
-        if c not in _CHANNELS:
+        if c not in CHANNEL_COUNTS:
             raise ValueError(f"features have {c} channels; expected 9 (ACAP) or 12 (ACAP and placement)")
         x = np.asarray(features, dtype=np.float64).reshape(-1, c)
         groups = [g for g in _GROUPS if g.stop <= c]
@@ -92,7 +93,7 @@ class Scaling:
     @staticmethod
     def from_dict(d: dict) -> "Scaling":
         lo, hi = np.asarray(d["minimum"], dtype=np.float64), np.asarray(d["maximum"], dtype=np.float64)
-        if lo.ndim != 1 or lo.size not in _CHANNELS or hi.shape != lo.shape or not np.all(hi > lo):
+        if lo.ndim != 1 or lo.size not in CHANNEL_COUNTS or hi.shape != lo.shape or not np.all(hi > lo):
             raise ValueError("scaling needs 9 (or 12) minima below as many maxima")
         return Scaling(lo, hi, str(d.get("mode", "two-group")))
 

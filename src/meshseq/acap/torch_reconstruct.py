@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from meshseq.acap.features import features_to_gradients
-from meshseq.acap.parts import component_centroids
+from meshseq.acap.parts import relative_centroids
 from meshseq.acap.reconstruct import Reconstructor
 
 #: cholespy's CUDA solver takes at most this many right-hand sides at once.
@@ -68,8 +68,7 @@ class TorchReconstructor(torch.nn.Module):
         self.register_buffer("labels", torch.as_tensor(labels, device=device))
         self.n_components = reconstructor.topology.n_components
         self.register_buffer("offsets", torch.as_tensor(reconstructor.reference_offsets, dtype=dtype, device=device))
-        rel = component_centroids(reconstructor.reference[None], reconstructor.topology)[0] - \
-            reconstructor.reference.mean(axis=0)  # (C, 3): parts' centroids from the mesh's, at rest
+        rel = relative_centroids(reconstructor.reference[None], reconstructor.topology)[0]  # (C, 3), at rest
         self.register_buffer("reference_placement", torch.as_tensor(rel, dtype=dtype, device=device))
         counts = np.bincount(labels, minlength=self.n_components)
         self.register_buffer("counts", torch.as_tensor(counts, dtype=dtype, device=device))

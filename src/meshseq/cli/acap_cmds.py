@@ -159,8 +159,9 @@ def cmd_info(args) -> int:
     else:
         for info in infos:
             _print(info, args.json, "info" if len(infos) == 1 else f"info: {info['source']}")
-            if not args.json and parts_note(info):
-                print(parts_note(info))
+            note = None if args.json else parts_note(info)
+            if note:
+                print(note)
     return 0
 
 

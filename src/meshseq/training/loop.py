@@ -179,12 +179,13 @@ class _Setup:
     @staticmethod
     def of(data: TrainingData, config: TrainConfig, model_options: dict | None, found, splits, world: int) -> "_Setup":
         from meshseq.acap import Scaling
+        from meshseq.acap.parts import CHANNEL_COUNTS
 
         faces, V = data.faces, data.n_vertices
         topo = Topology.from_faces(faces, V)
         C = data.features[0].shape[-1] if data.features[0].ndim == 3 else 9  # 12: ACAP and placement channels
         for name, f in zip(data.names, data.features):
-            if f.ndim != 3 or f.shape[1:] != (V, C) or C not in (9, 12):
+            if f.ndim != 3 or f.shape[1:] != (V, C) or C not in CHANNEL_COUNTS:
                 raise MeshseqError(f"{name}: features must have shape (T, {V}, 9) (or 12 channels with the "
                                    f"placement of a multi-part mesh, all data sets alike), got {f.shape}")
         if found is not None:
