@@ -148,6 +148,47 @@ def test_anchored_join_keeps_chains_that_reach_the_far_key_and_drops_ones_that_m
     np.testing.assert_allclose(out, still, atol=1e-12)
 
 
+def test_context_fit_trusts_frames_the_model_predicts_and_not_a_pose_held_still(model, trained):
+    """``context_fit``: frames that are the model's own roll-out (to the key, each side in its
+    chain's direction) are predicted exactly (0); a pose held still is not (standing still is exact)."""
+    import torch
+
+    from meshseq.synthesize import context_fit
+
+    x = model.features(trained[2].vertices[[10, 40]])
+    with torch.no_grad():
+        fwd = model.net.rollout(torch.as_tensor(x[:1]), 5, model.net.initial_state(1, 0))[0][0].numpy()
+        bwd = model.net.rollout(torch.as_tensor(x[1:]), 5, model.net.initial_state(0, 1), n_forward=0)[0][0].numpy()
+    before, key_a = fwd[None, :-1], fwd[None, -1]  # forward: far frame first, the key last
+    key_b, after = bwd[None, -1], bwd[None, -2::-1]  # backward, rolled from the far frame: in time order the key first
+    assert context_fit(model, before, key_a, after, key_b)[0] < 1e-5
+    still = np.repeat(x[:1, None], 4, 1)
+    assert context_fit(model, still, x[:1], still, x[:1])[0] > 1.0
+    assert np.isinf(context_fit(model, None, x[:1], None, x[:1])[0])
+
+
+def test_context_frames_warm_the_chains_and_trusted_pairs_keep_the_corrected_join(model, trained):
+    from meshseq.synthesize import complete, join_chains, warm_chain_states
+
+    v = trained[2].vertices
+    f = model.features(v)
+    state = model.net.initial_state(2, 2)
+    same = warm_chain_states(model, state, f[None, :0].repeat(2, 0), None)
+    assert all(torch.equal(a, b) for a, b in zip(same, state))
+    warm = warm_chain_states(model, state, np.stack([f[3:10]] * 2), np.stack([f[30:37]] * 2))
+    assert not torch.equal(warm[0][:, :2], state[0][:, :2]) and not torch.equal(warm[0][:, 2:], state[0][:, 2:])
+    plain = complete(model, f[10], f[21], 10, join="corrected").frames[0]
+    ctx = complete(model, f[10], f[21], 10, join="corrected", before=f[3:10], after=f[22:29]).frames[0]
+    assert not np.allclose(plain, ctx)
+    np.testing.assert_array_equal(ctx[[0, -1]], f[[10, 21]])
+    rng = np.random.default_rng(0)
+    fwd, bwd = (rng.normal(size=(3, 8, 5, 9)).astype(np.float32) for _ in range(2))
+    trusted = np.array([True, False, True])
+    got = join_chains(fwd, bwd, "anchored", trusted=trusted)[0]
+    np.testing.assert_allclose(got[trusted], join_chains(fwd, bwd, "corrected")[0][trusted], atol=1e-6)
+    np.testing.assert_array_equal(got[~trusted], join_chains(fwd, bwd, "anchored")[0][~trusted])
+
+
 def test_completion_joins_paper_stitch_and_corrected(model, trained):
     from meshseq.errors import MeshseqError
     from meshseq.synthesize import complete
@@ -455,7 +496,8 @@ def test_joining_all_pairs_at_once_equals_joining_each_pair(n):
 
 def test_batched_completion_errors_equal_the_per_start_reference(model, trained):
     """``evaluate.completion_errors`` runs every start's chains (and every start's samples) as one
-    roll-out; the reference completes each start alone with ``complete``, as it always did."""
+    roll-out; the reference completes each start alone with ``complete``, given the same frames
+    around the keys."""
     from meshseq import evaluate
     from meshseq.synthesize import complete
 
@@ -470,7 +512,9 @@ def test_batched_completion_errors_equal_the_per_start_reference(model, trained)
     for method, join in (("ours", "anchored"), ("stitch", "stitch")):
         errs = []
         for s in starts:
-            f = complete(model, feats[s], feats[s + gap + 1], gap, join=join).frames[0]
+            b = s + gap + 1
+            f = complete(model, feats[s], feats[b], gap, join=join, before=feats[s - evaluate.CONTEXT_FRAMES:s],
+                         after=feats[b + 1:b + 1 + evaluate.CONTEXT_FRAMES]).frames[0]
             verts = _assemble_one_frame_at_a_time(model, f, {0: v[s], gap + 1: v[s + gap + 1]})
             errs.append(per_vertex_error(verts[1:-1], v[s + 1:s + gap + 1]).mean() / evaluate.UNITS)
         assert got[method] == pytest.approx(np.mean(errs), rel=1e-6, abs=1e-3)  # abs: 1e-7 data units
@@ -490,6 +534,7 @@ def test_synthesis_commands_list_the_library_methods_without_importing_it():
     assert synth_cmds.PREDICTION_METHODS == baselines.PREDICTION_METHODS
     assert synth_cmds.COMPLETION_METHODS == baselines.COMPLETION_METHODS
     assert synth_cmds.PACES == synthesize.PACES
+    assert synth_cmds.CONTEXT_FRAMES == synthesize.CONTEXT_FRAMES
     assert set(synthesize.METHOD_JOINS) <= set(synth_cmds.COMPLETION_METHODS)
 
 

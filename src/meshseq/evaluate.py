@@ -23,8 +23,9 @@ from meshseq import baselines
 from meshseq.align import per_vertex_error
 from meshseq.errors import MeshseqError
 from meshseq.plots import feature_change as relative_change
-from meshseq.synthesize import (METHOD_JOINS, assemble_vertices, chain_states, complete_cma, join_chain_states,
-                                join_chains, predict, run_chains)
+from meshseq.synthesize import (CONTEXT_FRAMES, METHOD_JOINS, assemble_vertices, chain_states, complete_cma,
+                                context_fit, join_chain_states, join_chains, predict, run_chains,
+                                warm_chain_states)
 
 UNITS = 1e-4  # errors are reported in the data's units x 1e-4 (paper's tables)
 
@@ -157,9 +158,13 @@ def feature_change(model, feats: np.ndarray, starts: np.ndarray, given: int, n_f
 
 def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, hi: int,
                       gaps: list[int], methods: list[str], samples: int = 4, seed: int = 0,
-                      max_starts: int = 8, cma_evals: int = 200, cma_seconds: float = 20.0) -> dict:
+                      max_starts: int = 8, cma_evals: int = 200, cma_seconds: float = 20.0,
+                      context: int = CONTEXT_FRAMES) -> dict:
     """In-between errors (x 1e-4, centroid-aligned, mean over in-between frames and starts) for
     held-out gaps, and the diversity of ``samples`` random-state completions (ours).
+
+    The chains of ours and stitch are given up to ``context`` frames of the sequence before key a
+    and after key b (``synthesize.complete``'s ``before`` / ``after``); the other methods the keys alone.
 
     Returns ``{str(gap): {method: error, ..., "diversity": d, "starts": n}}``.
     """
@@ -170,7 +175,7 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
             continue
         starts = starts[np.linspace(0, len(starts) - 1, min(max_starts, len(starts))).astype(int)]
         res: dict = {"starts": int(len(starts))}
-        frames = _completion_features(model, feats, starts, gap, methods, seed, cma_evals, cma_seconds)
+        frames = _completion_features(model, feats, starts, gap, methods, seed, cma_evals, cma_seconds, context)
         for m in methods:
             errs = []
             for p, a in enumerate(starts):
@@ -188,10 +193,11 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
 
 
 def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int, methods: list[str], seed: int,
-                         cma_evals: int, cma_seconds: float) -> dict[str, np.ndarray]:
+                         cma_evals: int, cma_seconds: float, context: int = 0) -> dict[str, np.ndarray]:
     """Scaled features ``(P, gap + 2, V, 9)`` of each feature-space method's completion of the gaps
     ``feats[s] .. feats[s + gap + 1]`` for the P ``starts``. The chains of every start run as one
-    roll-out from the trained initial states (what ``complete`` does for one gap), joined each way."""
+    roll-out from the trained initial states (what ``complete`` does for one gap; ``context_chains``),
+    joined each way."""
     keys_a, keys_b = feats[starts], feats[starts + gap + 1]
     out, chains = {}, None
     for m in methods:
@@ -199,9 +205,8 @@ def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int,
             continue
         if m in METHOD_JOINS:
             if chains is None:
-                state = model.net.initial_state(len(starts), len(starts), model.device)
-                chains = run_chains(model, keys_a, keys_b, gap, state)
-            f = join_chains(*chains, METHOD_JOINS[m])[0]
+                chains = context_chains(model, feats, starts, gap, context)
+            f = join_chains(chains[0], chains[1], METHOD_JOINS[m], trusted=chains[2])[0]
             f[:, 0], f[:, -1] = keys_a, keys_b
         elif m == "cma":  # one optimisation per gap (each batches its population)
             f = np.stack([complete_cma(model, a, b, gap, max_evals=cma_evals, max_seconds=cma_seconds,
@@ -212,6 +217,28 @@ def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int,
             raise MeshseqError(f"unknown completion method {m!r}; expected one of {baselines.COMPLETION_METHODS}")
         out[m] = f
     return out
+
+
+def context_chains(model, feats: np.ndarray, starts: np.ndarray, gap: int, context: int):
+    """``(forward, backward, trusted)`` of the gaps ``feats[s] .. feats[s + gap + 1]`` for the P
+    ``starts``: the chains ``(P, gap + 2, V, C)`` warmed up on up to ``context`` frames of ``feats``
+    before key a and after key b (``warm_chain_states``), and ``(P,)`` whether the model predicts
+    those frames better than standing still (``context_fit`` < 1). Starts with as many frames around
+    their keys run as one roll-out; with ``context=0``, the chains from the keys alone, none trusted."""
+    n_before = np.minimum(context, starts)
+    n_after = np.minimum(context, len(feats) - 1 - (starts + gap + 1))
+    shape = (len(starts), gap + 2) + feats.shape[1:]
+    forward, backward = np.empty(shape, np.float32), np.empty(shape, np.float32)
+    trusted = np.zeros(len(starts), bool)
+    for la, lb in sorted(set(zip(n_before.tolist(), n_after.tolist()))):
+        rows = np.flatnonzero((n_before == la) & (n_after == lb))
+        a, b = starts[rows], starts[rows] + gap + 1
+        before = np.stack([feats[s - la:s] for s in a])
+        after = np.stack([feats[s + 1:s + 1 + lb] for s in b])
+        state = warm_chain_states(model, model.net.initial_state(len(rows), len(rows), model.device), before, after)
+        forward[rows], backward[rows] = run_chains(model, feats[a], feats[b], gap, state)
+        trusted[rows] = context_fit(model, before, feats[a], after, feats[b]) < 1.0
+    return forward, backward, trusted
 
 
 def _completion_diversity(model, vertices: np.ndarray, feats: np.ndarray, starts: np.ndarray, gap: int,

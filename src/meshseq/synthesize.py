@@ -163,6 +163,62 @@ def seeded_chain_states(model, seeds: list[int]) -> tuple[torch.Tensor, torch.Te
     return join_chain_states([chain_states(model, 1, True, torch.Generator().manual_seed(int(s))) for s in seeds])
 
 
+#: Frames on each side of a completion's keys (``complete``'s ``before`` / ``after``; the ``complete``
+#: command takes up to this many from the sequence) that warm its chains up and show whether to trust them.
+CONTEXT_FRAMES = 7
+
+
+def warm_chain_states(model, state, before=None, after=None):
+    """The chains' initial ``state`` (``(h, c)``, each ``(K, 2P, L)``: P forward rows, then P backward
+    rows) after teacher-forced steps through the frames given around their keys, as ``predict`` warms
+    up on its given frames: the forward rows through ``before`` ``(P, U_a, V, C)`` (the frames just
+    before key a, in time order), the backward rows through ``after`` ``(P, U_b, V, C)`` (the frames
+    just after key b) from the last one back. Either may be None or hold no frames."""
+    pairs = state[0].shape[1] // 2
+    sides = []
+    for rows, frames, n_forward in ((slice(0, pairs), before, pairs), (slice(pairs, None), after, 0)):
+        st = (state[0][:, rows], state[1][:, rows])
+        if frames is not None and np.shape(frames)[1]:
+            x = _tensor(model, frames)
+            order = range(x.shape[1]) if n_forward else range(x.shape[1] - 1, -1, -1)
+            with torch.no_grad():
+                for i in order:
+                    st, _, _, _ = model.net.step(st, x[:, i], n_forward=n_forward)
+        sides.append(st)
+    return tuple(torch.cat([sides[0][k], sides[1][k]], 1) for k in range(2))
+
+
+def context_fit(model, before, key_a, after, key_b) -> np.ndarray:
+    """``(P,)``: how the model predicts the frames given around P pairs of keys, against standing
+    still (< 1: better). On each side with frames (``before`` ``(P, U_a, V, C)`` then ``key_a``
+    ``(P, V, C)``; ``after`` ``(P, U_b, V, C)`` back to ``key_b``), a free roll-out from the far
+    frame to the key, as the chains roll; its mean RMS error over that of holding the far frame.
+    The larger of the two sides; ``inf`` where neither side has frames (nothing shows the model
+    knows this motion) or the given frames stand still."""
+    fits = []
+    for frames, key, n_forward in ((before, key_a, None), (after, key_b, 0)):
+        if frames is None or not np.shape(frames)[1]:
+            continue
+        key = np.asarray(key)[:, None]
+        if n_forward is None:  # (P, U + 1, V, C) from the far frame to the key
+            path = np.concatenate([np.asarray(frames), key], 1)
+        else:
+            path = np.concatenate([key, np.asarray(frames)], 1)[:, ::-1]
+        p = path.shape[0]
+        state = model.net.initial_state(p, 0, model.device) if n_forward is None else \
+            model.net.initial_state(0, p, model.device)
+        with torch.no_grad():
+            rolled, _, _, _ = model.net.rollout(_tensor(model, path[:, 0]), path.shape[1] - 1, state,
+                                                n_forward=n_forward)
+        true = path[:, 1:].astype(np.float64)
+        model_err = np.sqrt(np.square(rolled.cpu().numpy()[:, 1:] - true).mean((2, 3))).mean(1)
+        still_err = np.sqrt(np.square(true - path[:, :1]).mean((2, 3))).mean(1)
+        fits.append(model_err / np.maximum(still_err, 1e-12))
+    if not fits:
+        return np.full(np.shape(key_a)[0], np.inf)
+    return np.max(fits, axis=0)
+
+
 def run_chains(model, keys_a, keys_b, n_between: int, state) -> tuple[np.ndarray, np.ndarray]:
     """The forward chains from ``keys_a`` and the backward chains from ``keys_b`` as ONE roll-out
     (the weights read once a step for all of them).
@@ -182,12 +238,14 @@ def run_chains(model, keys_a, keys_b, n_between: int, state) -> tuple[np.ndarray
     return frames[:pairs], frames[pairs:]
 
 
-def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int = 2):
+def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int = 2,
+                trusted: np.ndarray | None = None):
     """``(frames (P, n, V, C), meeting frames (P,), gaps (P,))`` of P chain pairs ``(P, n, V, C)``
     (``run_chains``) joined by ``join``, all pairs at once: what ``corrected_crossfade`` or
     ``stitch_chains`` give pair by pair, and for ``anchored`` the corrected frames drawn toward the
-    keys' straight line by ``reach_weights``; ``meeting``/``gap``: where the raw chains agree best
-    (``stitch_chains``' choice), whatever the join."""
+    keys' straight line by ``reach_weights``, except the pairs ``trusted`` ``(P,)`` bool marks (the
+    model predicts the frames around their keys: ``context_fit``), which keep the corrected join;
+    ``meeting``/``gap``: where the raw chains agree best (``stitch_chains``' choice), whatever the join."""
     pairs, n = forward.shape[:2]
     back = backward[:, ::-1]  # forward time order: back[:, -1] = key b
     diff = forward - back
@@ -207,7 +265,8 @@ def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int
     frames -= (ramp * (1 - ramp)) * miss[:, None]
     if join == "anchored":
         line = forward[:, :1] * (1 - ramp) + backward[:, :1] * ramp  # (P, n, V, C)
-        w = reach_weights(forward, backward).astype(forward.dtype)[:, None, None, None]
+        w = reach_weights(forward, backward)
+        w = (w if trusted is None else np.where(trusted, 1.0, w)).astype(forward.dtype)[:, None, None, None]
         frames = line + w * (frames - line)
     return frames, meets, gaps.astype(np.float64)
 
@@ -298,7 +357,7 @@ def sample_join(method: str, random_state: bool) -> str:
 
 def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state: bool | None = None,
              seed: int | None = None, blend: int = 2, join: str | None = None,
-             seeds: list[int] | None = None) -> Completion:
+             seeds: list[int] | None = None, before=None, after=None) -> Completion:
     """Fill ``n_between`` frames between two keys with the two chains, joined by ``join``.
 
     All samples' chains run as one batched roll-out (``run_chains``).
@@ -317,6 +376,11 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
             default ``anchored``, ``corrected`` for random-state samples (``sample_join``).
             ``stitch`` / ``gap`` of the result are the raw chains' meeting frame and distance
             either way.
+        before, after: ``(U_a, V, 9)`` / ``(U_b, V, 9)`` scaled features of the frames given just
+            before key a / just after key b (time order; up to ``CONTEXT_FRAMES`` are useful). The
+            chains warm up on them (``warm_chain_states``), and where the model predicts them better
+            than standing still (``context_fit`` < 1) the ``anchored`` join keeps the chains' own
+            motion (the corrected join) instead of drawing it toward the line.
     """
     random_state = (samples > 1 if random_state is None else random_state) or seeds is not None
     if join is None:
@@ -331,8 +395,15 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
         gen = torch.Generator().manual_seed(int(seed)) if seed is not None else None
         state = chain_states(model, samples, random_state, gen)
     keys_a, keys_b = (_tensor(model, k)[None].expand(samples, -1, -1) for k in (key_a, key_b))
+    ctx_a, ctx_b = (None if c is None else np.broadcast_to(np.asarray(c), (samples,) + np.shape(c))
+                    for c in (before, after))
+    trusted = None
+    if ctx_a is not None or ctx_b is not None:
+        state = warm_chain_states(model, state, ctx_a, ctx_b)
+        fit = context_fit(model, ctx_a, keys_a.cpu().numpy(), ctx_b, keys_b.cpu().numpy())
+        trusted = fit < 1.0
     forward, backward = run_chains(model, keys_a, keys_b, n_between, state)
-    frames, meets, gaps = join_chains(forward, backward, join, blend)
+    frames, meets, gaps = join_chains(forward, backward, join, blend, trusted=trusted)
     frames[:, 0] = np.asarray(key_a)
     frames[:, -1] = np.asarray(key_b)
     return Completion(frames, meets, gaps)
@@ -384,7 +455,8 @@ def complete_cma(model, key_a, key_b, n_between: int, max_evals: int = 400, max_
 
 def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method: str = "ours",
                        samples: int = 1, seed: int = 0, cma_evals: int = 400,
-                       cma_seconds: float = 60.0) -> np.ndarray:
+                       cma_seconds: float = 60.0, before: np.ndarray | None = None,
+                       after: np.ndarray | None = None) -> np.ndarray:
     """Fill every gap between consecutive keyframes and return vertices through all of them.
 
     Args:
@@ -394,6 +466,9 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
             in the paper), ``cma`` (CMA-ES baseline), ``linear`` (ACAP interpolation) or
             ``linear_vertices`` (straight lines between the keys' vertices).
         samples: completions from random initial states (``ours`` only; 1 = the trained states).
+        before, after: ``(U_a, V, 3)`` / ``(U_b, V, 3)`` frames given just before the first key and
+            just after the last (time order): the first gap's forward chain and the last gap's
+            backward chain warm up on them (``complete``'s ``before`` / ``after``; ours and stitch).
     Returns:
         ``(samples, K + sum(gaps), V, 3)`` vertices, exactly the keys at the key frames.
     """
@@ -407,12 +482,14 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
     if method == "linear_vertices":
         parts = [linear_interpolation(keys[i], keys[i + 1], gap)[int(i > 0):] for i, gap in enumerate(gaps)]
         return np.concatenate(parts)[None]
-    key_f = model.features(keys)
+    chains = method in METHOD_JOINS
+    key_f, ctx_a, ctx_b = keyframe_features(model, keys, before if chains else None, after if chains else None)
     parts, anchors, offset = [], {0: keys[0]}, 0
     for i, gap in enumerate(gaps):  # per gap; all samples of a gap run as one batched roll-out
         if method in METHOD_JOINS:
             seeds = [seed * 1000 + s * 97 + i for s in range(samples)] if samples > 1 else None
-            f = complete(model, key_f[i], key_f[i + 1], gap, seeds=seeds, join=sample_join(method, samples > 1)).frames
+            f = complete(model, key_f[i], key_f[i + 1], gap, seeds=seeds, join=sample_join(method, samples > 1),
+                         before=ctx_a if i == 0 else None, after=ctx_b if i == len(gaps) - 1 else None).frames
         elif method == "cma":
             f = complete_cma(model, key_f[i], key_f[i + 1], gap, max_evals=cma_evals,
                              max_seconds=cma_seconds, seed=seed + i).frames
@@ -422,6 +499,21 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
         offset += gap + 1
         anchors[offset] = keys[i + 1]
     return assemble_vertices(model, np.concatenate(parts, axis=1), anchors)
+
+
+def keyframe_features(model, keys: np.ndarray, before=None, after=None):
+    """Scaled features of keyframes ``(K, V, 3)`` and of the frames given before and after them,
+    ``(K, V, 9)`` and ``(U_a, V, 9)`` / ``(U_b, V, 9)`` (None where none are given). Extracted in
+    one pass in time order, so that the context's rotations follow on from the keys'; without
+    context, the keys' features alone (as before context was used)."""
+    n_a = 0 if before is None else len(before)
+    n_b = 0 if after is None else len(after)
+    if not n_a and not n_b:
+        return model.features(keys), None, None
+    parts = [np.asarray(p, dtype=np.float64) for p in (before, keys, after) if p is not None and len(p)]
+    f = model.features(np.concatenate(parts))
+    k = len(keys)
+    return f[n_a:n_a + k], (f[:n_a] if n_a else None), (f[n_a + k:] if n_b else None)
 
 
 # --------------------------------------------------------------------------------------------

@@ -16,8 +16,9 @@ from meshseq.errors import MeshseqError, MeshseqWarning
 #: the parser does not import torch (tests/test_synthesis.py checks that they match)
 PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
 COMPLETION_METHODS = ("ours", "corrected", "stitch", "cma", "linear", "linear_vertices")
-#: ``meshseq.synthesize.PACES`` (the same check)
+#: ``meshseq.synthesize.PACES`` and ``CONTEXT_FRAMES`` (the same check)
 PACES = ("given", "model")
+CONTEXT_FRAMES = 7
 
 
 def register(sub) -> None:
@@ -42,19 +43,25 @@ def register(sub) -> None:
 
     p = sub.add_parser("complete", help="fill in the frames between keyframes",
                        description="Fill every gap between consecutive keyframes of DATA: the forward "
-                       "chain from the first key and the backward chain from the second, stitched "
-                       "where they meet. The output passes exactly through every keyframe.")
+                       "chain from the first key and the backward chain from the second, joined. "
+                       "Frames of DATA just before the first key and just after the last warm the chains "
+                       "up (--context). The output passes exactly through every keyframe.")
     _run_data(p)
     p.add_argument("--keyframes", required=True, metavar="A,B[,C...]",
                    help="increasing frame numbers of DATA to keep as keys")
     p.add_argument("--between", type=int, default=None, metavar="N",
                    help="frames to generate between consecutive keys (default: as many as DATA has there)")
+    p.add_argument("--context", type=int, default=CONTEXT_FRAMES, metavar="N",
+                   help=f"frames of DATA before the first key and after the last that the chains warm up on; "
+                   f"where the model predicts them better than standing still, ours keeps the chains' "
+                   f"motion (default {CONTEXT_FRAMES}; 0: the keys alone, as in the paper)")
     p.add_argument("--samples", type=int, default=1, metavar="K",
                    help="K completions from random initial states (default 1: the trained states)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
     p.add_argument("--method", choices=COMPLETION_METHODS, default="ours",
                    help="ours (default: the two chains, each corrected to end on the far key, crossfaded, and "
-                   "drawn toward the straight line between the keys as far as they missed the far key), "
+                   "drawn toward the straight line between the keys as far as they missed the far key, "
+                   "unless the model predicts the --context frames better than standing still), "
                    "corrected (the same without that pull), stitch (the same chains joined where they agree best, as in the paper), "
                    "cma (CMA-ES over the forward chain's initial state), linear "
                    "(interpolation of ACAP features) or linear_vertices (straight lines between the keys' "
@@ -250,6 +257,8 @@ def cmd_complete(args) -> int:
         raise MeshseqError(f"--samples {args.samples}: expected at least 1")
     if args.between is not None and args.between < 0:
         raise MeshseqError(f"--between {args.between}: expected >= 0")
+    if args.context < 0:
+        raise MeshseqError(f"--context {args.context}: expected >= 0")
     if args.samples > 1 and Path(args.output).suffix:
         raise MeshseqError(f"-o {args.output}: with --samples > 1 the output is a folder (one file per "
                            "sample and diversity.json); give a path without an extension")
@@ -259,7 +268,10 @@ def cmd_complete(args) -> int:
     if keys[0] < 0 or keys[-1] >= seq.n_frames:
         raise MeshseqError(f"--keyframes {args.keyframes}: {args.data} has frames 0..{seq.n_frames - 1}")
     gaps = [args.between if args.between is not None else b - a - 1 for a, b in zip(keys, keys[1:])]
+    before = seq.vertices[max(0, keys[0] - args.context):keys[0]]
+    after = seq.vertices[keys[-1] + 1:keys[-1] + 1 + args.context]
     samples_v = synthesize.complete_keyframes(model, seq.vertices[keys], gaps, method=args.method,
+                                              before=before, after=after,
                                               samples=args.samples, seed=args.seed, cma_evals=args.cma_evals,
                                               cma_seconds=args.cma_seconds)
     if args.samples == 1:
