@@ -223,8 +223,9 @@ def context_chains(model, feats: np.ndarray, starts: np.ndarray, gap: int, conte
     """``(forward, backward, trusted)`` of the gaps ``feats[s] .. feats[s + gap + 1]`` for the P
     ``starts``: the chains ``(P, gap + 2, V, C)`` warmed up on up to ``context`` frames of ``feats``
     before key a and after key b (``warm_chain_states``), and ``(P,)`` whether the model predicts
-    those frames better than standing still (``context_fit`` < 1). Starts with as many frames around
-    their keys run as one roll-out; with ``context=0``, the chains from the keys alone, none trusted."""
+    those frames better than standing still and constant velocity (``context_fit`` < 1). Starts
+    with as many frames around their keys run as one roll-out; with ``context=0``, the chains from
+    the keys alone, none trusted."""
     n_before = np.minimum(context, starts)
     n_after = np.minimum(context, len(feats) - 1 - (starts + gap + 1))
     shape = (len(starts), gap + 2) + feats.shape[1:]

@@ -189,15 +189,17 @@ def warm_chain_states(model, state, before=None, after=None):
 
 
 def context_fit(model, before, key_a, after, key_b) -> np.ndarray:
-    """``(P,)``: how the model predicts the frames given around P pairs of keys, against standing
-    still (< 1: better). On each side with frames (``before`` ``(P, U_a, V, C)`` then ``key_a``
-    ``(P, V, C)``; ``after`` ``(P, U_b, V, C)`` back to ``key_b``), a free roll-out from the far
-    frame to the key, as the chains roll; its mean RMS error over that of holding the far frame.
-    The larger of the two sides; ``inf`` where neither side has frames (nothing shows the model
-    knows this motion) or the given frames stand still."""
+    """``(P,)``: how the model predicts the frames given around P pairs of keys, against the
+    trivial predictions (< 1: better than both). On each side with at least two frames
+    (``before`` ``(P, U_a, V, C)`` then ``key_a`` ``(P, V, C)``; ``after`` ``(P, U_b, V, C)`` back
+    to ``key_b``): a free roll-out from the far frame to the key, as the chains roll, and its mean
+    RMS feature error from the second step on over the smaller of standing still's (the far frame)
+    and constant velocity's (the far frame's step repeated) on the same frames (``_side_fit``).
+    The larger of the two sides; ``inf`` where no side has two frames (nothing shows that the model
+    knows this motion)."""
     fits = []
     for frames, key, n_forward in ((before, key_a, None), (after, key_b, 0)):
-        if frames is None or not np.shape(frames)[1]:
+        if frames is None or np.shape(frames)[1] < 2:
             continue
         key = np.asarray(key)[:, None]
         if n_forward is None:  # (P, U + 1, V, C) from the far frame to the key
@@ -210,13 +212,23 @@ def context_fit(model, before, key_a, after, key_b) -> np.ndarray:
         with torch.no_grad():
             rolled, _, _, _ = model.net.rollout(_tensor(model, path[:, 0]), path.shape[1] - 1, state,
                                                 n_forward=n_forward)
-        true = path[:, 1:].astype(np.float64)
-        model_err = np.sqrt(np.square(rolled.cpu().numpy()[:, 1:] - true).mean((2, 3))).mean(1)
-        still_err = np.sqrt(np.square(true - path[:, :1]).mean((2, 3))).mean(1)
-        fits.append(model_err / np.maximum(still_err, 1e-12))
+        fits.append(_side_fit(path.astype(np.float64), rolled.cpu().numpy()))
     if not fits:
         return np.full(np.shape(key_a)[0], np.inf)
     return np.max(fits, axis=0)
+
+
+def _side_fit(path: np.ndarray, rolled: np.ndarray) -> np.ndarray:
+    """``(P,)`` for true frames ``path`` ``(P, n, V, C)`` (n >= 3) and a roll-out from ``path[:, 0]``
+    ``rolled`` (the same shape, ``rolled[:, 0] = path[:, 0]``): its mean RMS error over frames
+    ``2..n-1`` over the smaller of standing still's and constant velocity's."""
+    def err(pred):  # (P, n - 2) RMS per frame
+        return np.sqrt(np.square(pred - path[:, 2:]).mean((2, 3)))
+
+    steps = np.arange(1, path.shape[1] - 1)[None, :, None, None]
+    still = err(path[:, :1]).mean(1)
+    constant = err(path[:, 1:2] + (path[:, 1:2] - path[:, :1]) * steps).mean(1)
+    return err(rolled[:, 2:]).mean(1) / np.maximum(np.minimum(still, constant), 1e-12)
 
 
 def run_chains(model, keys_a, keys_b, n_between: int, state) -> tuple[np.ndarray, np.ndarray]:
@@ -378,9 +390,10 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
             either way.
         before, after: ``(U_a, V, 9)`` / ``(U_b, V, 9)`` scaled features of the frames given just
             before key a / just after key b (time order; up to ``CONTEXT_FRAMES`` are useful). The
-            chains warm up on them (``warm_chain_states``), and where the model predicts them better
-            than standing still (``context_fit`` < 1) the ``anchored`` join keeps the chains' own
-            motion (the corrected join) instead of drawing it toward the line.
+            chains warm up on them (``warm_chain_states``), and where the model predicts them
+            better than standing still and constant velocity (``context_fit`` < 1) the
+            ``anchored`` join keeps the chains' own motion (the corrected join) instead of
+            drawing it toward the line.
     """
     random_state = (samples > 1 if random_state is None else random_state) or seeds is not None
     if join is None:

@@ -52,16 +52,16 @@ def register(sub) -> None:
     p.add_argument("--between", type=int, default=None, metavar="N",
                    help="frames to generate between consecutive keys (default: as many as DATA has there)")
     p.add_argument("--context", type=int, default=CONTEXT_FRAMES, metavar="N",
-                   help=f"frames of DATA before the first key and after the last that the chains warm up on; "
-                   f"where the model predicts them better than standing still, ours keeps the chains' "
-                   f"motion (default {CONTEXT_FRAMES}; 0: the keys alone, as in the paper)")
+                   help=f"frames of DATA before the first key and after the last that the chains warm up "
+                   f"on; where the model predicts them better than standing still and constant velocity, "
+                   f"ours keeps the chains' motion (default {CONTEXT_FRAMES}; 0: the keys alone, as in the paper)")
     p.add_argument("--samples", type=int, default=1, metavar="K",
                    help="K completions from random initial states (default 1: the trained states)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
     p.add_argument("--method", choices=COMPLETION_METHODS, default="ours",
                    help="ours (default: the two chains, each corrected to end on the far key, crossfaded, and "
                    "drawn toward the straight line between the keys as far as they missed the far key, "
-                   "unless the model predicts the --context frames better than standing still), "
+                   "unless the model predicts the --context frames better than standing still and constant velocity), "
                    "corrected (the same without that pull), stitch (the same chains joined where they agree best, as in the paper), "
                    "cma (CMA-ES over the forward chain's initial state), linear "
                    "(interpolation of ACAP features) or linear_vertices (straight lines between the keys' "
