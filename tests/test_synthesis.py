@@ -343,6 +343,19 @@ def test_predict_and_complete_commands(trained, tmp_path, capsys):
     assert main(["complete", str(run), str(data), "--keyframes", "4,15", "--samples", "3", "-o", str(many)]) == 0
     assert sorted(p.name for p in many.iterdir()) == ["diversity.json", "sample_00.npz", "sample_01.npz", "sample_02.npz"]
     assert json.loads((many / "diversity.json").read_text())["mean_pairwise_vertex_distance"] > 0
+    got = {}
+    for context in ("0", "7"):  # the frames of DATA around the keys warm the chains up
+        o = tmp_path / f"ctx{context}.npz"
+        assert main(["complete", str(run), str(data), "--keyframes", "10,21", "--method", "corrected",
+                     "--context", context, "-o", str(o)]) == 0
+        got[context] = load_sequence(o).vertices
+        assert np.array_equal(got[context][[0, -1]], seq.vertices[[10, 21]])
+    assert not np.allclose(got["0"], got["7"])
+    from meshseq.synthesize import complete_keyframes
+    from meshseq.api import load
+    api = complete_keyframes(load(run), seq.vertices[[10, 21]], [10], method="corrected",
+                             before=seq.vertices[3:10], after=seq.vertices[22:29])[0]
+    np.testing.assert_allclose(got["7"], api, atol=1e-12)
     for method in ("cma", "linear"):
         o = tmp_path / f"{method}.npz"
         assert main(["complete", str(run), str(data), "--keyframes", "4,12", "--method", method,
@@ -505,7 +518,7 @@ def test_batched_completion_errors_equal_the_per_start_reference(model, trained)
     feats = model.features(v)
     lo, hi, gap, samples, seed = 40, 60, 4, 3, 1
     got = evaluate.completion_errors(model, v, feats, lo, hi, [gap], ["ours", "stitch", "linear"],
-                                     samples=samples, seed=seed, max_starts=4)[str(gap)]
+                                     samples=samples, seed=seed, max_starts=4, context=7)[str(gap)]
     starts = np.arange(lo, hi - gap - 1)
     starts = starts[np.linspace(0, len(starts) - 1, 4).astype(int)]
     assert got["starts"] == 4
@@ -513,8 +526,8 @@ def test_batched_completion_errors_equal_the_per_start_reference(model, trained)
         errs = []
         for s in starts:
             b = s + gap + 1
-            f = complete(model, feats[s], feats[b], gap, join=join, before=feats[s - evaluate.CONTEXT_FRAMES:s],
-                         after=feats[b + 1:b + 1 + evaluate.CONTEXT_FRAMES]).frames[0]
+            f = complete(model, feats[s], feats[b], gap, join=join, before=feats[s - 7:s],
+                         after=feats[b + 1:b + 1 + 7]).frames[0]
             verts = _assemble_one_frame_at_a_time(model, f, {0: v[s], gap + 1: v[s + gap + 1]})
             errs.append(per_vertex_error(verts[1:-1], v[s + 1:s + gap + 1]).mean() / evaluate.UNITS)
         assert got[method] == pytest.approx(np.mean(errs), rel=1e-6, abs=1e-3)  # abs: 1e-7 data units
@@ -534,7 +547,6 @@ def test_synthesis_commands_list_the_library_methods_without_importing_it():
     assert synth_cmds.PREDICTION_METHODS == baselines.PREDICTION_METHODS
     assert synth_cmds.COMPLETION_METHODS == baselines.COMPLETION_METHODS
     assert synth_cmds.PACES == synthesize.PACES
-    assert synth_cmds.CONTEXT_FRAMES == synthesize.CONTEXT_FRAMES
     assert set(synthesize.METHOD_JOINS) <= set(synth_cmds.COMPLETION_METHODS)
 
 

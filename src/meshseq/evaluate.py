@@ -23,9 +23,8 @@ from meshseq import baselines
 from meshseq.align import per_vertex_error
 from meshseq.errors import MeshseqError
 from meshseq.plots import feature_change as relative_change
-from meshseq.synthesize import (CONTEXT_FRAMES, METHOD_JOINS, assemble_vertices, chain_states, complete_cma,
-                                context_fit, join_chain_states, join_chains, predict, run_chains,
-                                warm_chain_states)
+from meshseq.synthesize import (METHOD_JOINS, assemble_vertices, chain_states, complete_cma, context_fit,
+                                join_chain_states, join_chains, predict, run_chains, warm_chain_states)
 
 UNITS = 1e-4  # errors are reported in the data's units x 1e-4 (paper's tables)
 
@@ -159,12 +158,13 @@ def feature_change(model, feats: np.ndarray, starts: np.ndarray, given: int, n_f
 def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, hi: int,
                       gaps: list[int], methods: list[str], samples: int = 4, seed: int = 0,
                       max_starts: int = 8, cma_evals: int = 200, cma_seconds: float = 20.0,
-                      context: int = CONTEXT_FRAMES) -> dict:
+                      context: int = 0) -> dict:
     """In-between errors (x 1e-4, centroid-aligned, mean over in-between frames and starts) for
     held-out gaps, and the diversity of ``samples`` random-state completions (ours).
 
-    The chains of ours and stitch are given up to ``context`` frames of the sequence before key a
-    and after key b (``synthesize.complete``'s ``before`` / ``after``); the other methods the keys alone.
+    With ``context`` > 0 the chains of ours and stitch are given up to that many frames of the
+    sequence before key a and after key b (``synthesize.complete``'s ``before`` / ``after``, the
+    command's ``--context``); the other methods always the keys alone.
 
     Returns ``{str(gap): {method: error, ..., "diversity": d, "starts": n}}``.
     """

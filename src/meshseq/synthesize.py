@@ -163,11 +163,6 @@ def seeded_chain_states(model, seeds: list[int]) -> tuple[torch.Tensor, torch.Te
     return join_chain_states([chain_states(model, 1, True, torch.Generator().manual_seed(int(s))) for s in seeds])
 
 
-#: Frames on each side of a completion's keys (``complete``'s ``before`` / ``after``; the ``complete``
-#: command takes up to this many from the sequence) that warm its chains up and show whether to trust them.
-CONTEXT_FRAMES = 7
-
-
 def warm_chain_states(model, state, before=None, after=None):
     """The chains' initial ``state`` (``(h, c)``, each ``(K, 2P, L)``: P forward rows, then P backward
     rows) after teacher-forced steps through the frames given around their keys, as ``predict`` warms
@@ -389,7 +384,7 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
             ``stitch`` / ``gap`` of the result are the raw chains' meeting frame and distance
             either way.
         before, after: ``(U_a, V, 9)`` / ``(U_b, V, 9)`` scaled features of the frames given just
-            before key a / just after key b (time order; up to ``CONTEXT_FRAMES`` are useful). The
+            before key a / just after key b (time order; docs/method.md measured 7). The
             chains warm up on them (``warm_chain_states``), and where the model predicts them
             better than standing still and constant velocity (``context_fit`` < 1) the
             ``anchored`` join keeps the chains' own motion (the corrected join) instead of

@@ -16,9 +16,8 @@ from meshseq.errors import MeshseqError, MeshseqWarning
 #: the parser does not import torch (tests/test_synthesis.py checks that they match)
 PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
 COMPLETION_METHODS = ("ours", "corrected", "stitch", "cma", "linear", "linear_vertices")
-#: ``meshseq.synthesize.PACES`` and ``CONTEXT_FRAMES`` (the same check)
+#: ``meshseq.synthesize.PACES`` (the same check)
 PACES = ("given", "model")
-CONTEXT_FRAMES = 7
 
 
 def register(sub) -> None:
@@ -44,24 +43,23 @@ def register(sub) -> None:
     p = sub.add_parser("complete", help="fill in the frames between keyframes",
                        description="Fill every gap between consecutive keyframes of DATA: the forward "
                        "chain from the first key and the backward chain from the second, joined. "
-                       "Frames of DATA just before the first key and just after the last warm the chains "
-                       "up (--context). The output passes exactly through every keyframe.")
+                       "The output passes exactly through every keyframe.")
     _run_data(p)
     p.add_argument("--keyframes", required=True, metavar="A,B[,C...]",
                    help="increasing frame numbers of DATA to keep as keys")
     p.add_argument("--between", type=int, default=None, metavar="N",
                    help="frames to generate between consecutive keys (default: as many as DATA has there)")
-    p.add_argument("--context", type=int, default=CONTEXT_FRAMES, metavar="N",
-                   help=f"frames of DATA before the first key and after the last that the chains warm up "
-                   f"on; where the model predicts them better than standing still and constant velocity, "
-                   f"ours keeps the chains' motion (default {CONTEXT_FRAMES}; 0: the keys alone, as in the paper)")
+    p.add_argument("--context", type=int, default=0, metavar="N",
+                   help="frames of DATA before the first key and after the last that the chains warm up "
+                   "on; where the model predicts them better than standing still and constant velocity, "
+                   "ours keeps the chains' motion. Try 7 for a motion the model was trained on; on motions "
+                   "it never saw it can be worse than interpolation (default 0: the keys alone)")
     p.add_argument("--samples", type=int, default=1, metavar="K",
                    help="K completions from random initial states (default 1: the trained states)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
     p.add_argument("--method", choices=COMPLETION_METHODS, default="ours",
                    help="ours (default: the two chains, each corrected to end on the far key, crossfaded, and "
-                   "drawn toward the straight line between the keys as far as they missed the far key, "
-                   "unless the model predicts the --context frames better than standing still and constant velocity), "
+                   "drawn toward the straight line between the keys as far as they missed the far key), "
                    "corrected (the same without that pull), stitch (the same chains joined where they agree best, as in the paper), "
                    "cma (CMA-ES over the forward chain's initial state), linear "
                    "(interpolation of ACAP features) or linear_vertices (straight lines between the keys' "
