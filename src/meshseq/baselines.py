@@ -207,13 +207,20 @@ def load_vae(folder: str | Path, topology: Topology, device="cpu") -> tuple[Mesh
 
 def pairwise_diversity(samples: np.ndarray) -> float:
     """Mean distance between every pair of samples ``(K, ...)`` (per-vertex Euclidean over the last
-    axis, averaged); 0 for a single sample."""
+    axis, averaged); 0 for a single sample.
+
+    On coordinate-major rows ``(D, K, N)``, with no ``norm`` temporaries (8 crane completions of 33
+    frames: 0.35 -> 0.12 s; threads over the samples were slower on 2 cores)."""
     k = len(samples)
     if k < 2:
         return 0.0
-    total, count = 0.0, 0
-    for i in range(k):  # K is small (a handful of samples)
-        d = np.linalg.norm(samples[i + 1:] - samples[i][None], axis=-1)
-        total += float(d.mean(axis=tuple(range(1, d.ndim))).sum())
-        count += k - 1 - i
-    return total / count if count else 0.0
+    x = np.asarray(samples, dtype=np.float64)
+    cols = np.ascontiguousarray(np.moveaxis(x.reshape(k, -1, x.shape[-1]), -1, 0))  # (D, K, N)
+    total = 0.0
+    for i in range(k - 1):  # K is small (a handful of samples)
+        sq = np.square(cols[0, i + 1:] - cols[0, i])
+        for c in range(1, cols.shape[0]):
+            d = np.subtract(cols[c, i + 1:], cols[c, i])
+            sq += np.square(d, out=d)
+        total += float(np.sqrt(sq, out=sq).sum() / cols.shape[2])
+    return total / (k * (k - 1) // 2)

@@ -203,8 +203,8 @@ def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int
     ramp = np.linspace(0.0, 1.0, n).astype(forward.dtype)[None, :, None, None]
     miss = (forward[:, -1] - backward[:, 0]) + (backward[:, -1] - forward[:, 0])  # (P, V, C)
     frames = forward * (1 - ramp)
-    frames += back * ramp
-    frames -= (ramp * (1 - ramp)) * miss[:, None]
+    frames += np.multiply(back, ramp, out=diff)  # (diff's memory reused: same bits, no temporaries)
+    frames -= np.multiply(ramp * (1 - ramp), miss[:, None], out=diff)
     if join == "anchored":
         line = forward[:, :1] * (1 - ramp) + backward[:, :1] * ramp  # (P, n, V, C)
         w = reach_weights(forward, backward).astype(forward.dtype)[:, None, None, None]
@@ -481,6 +481,9 @@ def pass_through_anchors(recon: np.ndarray, anchors: dict[int, np.ndarray], deca
     true = np.stack([np.asarray(anchors[k], dtype=np.float64) for k in keys])  # (A, V, 3)
     corr = true[None] - recon[:, keys]  # (S, A, V, 3): centroid + residual
     w_corr, w_cent = anchor_weights(recon.shape[1], keys, decay)
-    out = recon + np.einsum("ta,savd->stvd", w_corr, corr) + (w_cent @ true.mean(axis=1))[None, :, None]
+    # (T, A) @ (S, A, V*3): one matmul (the einsum took 0.18 s for 8 crane completions)
+    out = np.matmul(w_corr, corr.reshape(corr.shape[0], len(keys), -1)).reshape(recon.shape)
+    out += recon
+    out += (w_cent @ true.mean(axis=1))[None, :, None]
     out[:, keys] = true[None]
     return out

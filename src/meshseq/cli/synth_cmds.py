@@ -266,7 +266,7 @@ def cmd_complete(args) -> int:
         path = _write(samples_v[0], seq.faces, f"{seq.name}_completed", args, seq.fps)
         print(f"wrote {path}: {len(samples_v[0])} frames through keyframes {keys} ({args.method})")
         return 0
-    diversity = baselines.pairwise_diversity(np.stack(samples_v))
+    diversity = baselines.pairwise_diversity(samples_v)
     fmt = args.format or "npz"
     with atomic_output(args.output, force=args.force) as tmp:
         tmp.mkdir()
