@@ -17,7 +17,6 @@ Functions take arrays and a loaded ``meshseq.api.Model``; they print nothing.
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from meshseq import baselines
 from meshseq.align import per_vertex_error
@@ -199,7 +198,7 @@ def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int,
             continue
         if m in METHOD_JOINS:
             if chains is None:
-                state = model.net.initial_state(len(starts), len(starts), model.device)
+                state = model.engine.initial_state(len(starts), len(starts))
                 chains = run_chains(model, keys_a, keys_b, gap, state)
             f = join_chains(*chains, METHOD_JOINS[m])[0]
             f[:, 0], f[:, -1] = keys_a, keys_b
@@ -219,7 +218,7 @@ def _completion_diversity(model, vertices: np.ndarray, feats: np.ndarray, starts
     """Mean pairwise diversity (x 1e-4) of ``samples`` random-state completions per start: start
     ``s`` draws the states ``complete(..., samples=samples, seed=seed + s)`` draws; all starts'
     chains run as one roll-out."""
-    state = join_chain_states([chain_states(model, samples, True, torch.Generator().manual_seed(seed + int(s)))
+    state = join_chain_states([chain_states(model, samples, True, seed + int(s))
                                for s in starts])
     rows = np.repeat(starts, samples)
     frames = join_chains(*run_chains(model, feats[rows], feats[rows + gap + 1], gap, state), "corrected")[0]
