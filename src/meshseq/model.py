@@ -59,6 +59,7 @@ from meshseq.kernels import (LSTMStep, MeshConvStack, fc_product, fc_product_and
 from meshseq.mesh import Topology
 from meshseq.model_config import (CONV_IMPLS, MODEL_OPTIONS, VARIANTS, ModelConfig,  # noqa: F401 (re-exported)
                                   is_finite_number)
+from meshseq.numpy_net import ring_matrix
 
 # --------------------------------------------------------------------------------------------
 # 1-ring mean operators
@@ -111,9 +112,7 @@ class NeighborMean(nn.Module):
         self.impl = impl
         self.n_vertices = topology.n_vertices
         deg = np.maximum(topology.degrees, 1).astype(np.float64)
-        import scipy.sparse as sp
-
-        A = (sp.diags(1.0 / deg) @ topology.adjacency).tocsr()
+        A = ring_matrix(topology, np.float64)
         self.register_buffer("A", _csr(A), persistent=False)
         self.register_buffer("At", _csr(A.T.tocsr()), persistent=False)
         if impl == "gather":

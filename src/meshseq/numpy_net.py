@@ -23,22 +23,24 @@ from meshseq.model_config import ModelConfig
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
-    """In place: ``1 / (1 + exp(-x))``."""
+    """In place: ``1 / (1 + exp(-x))`` (``exp`` overflowing to infinity gives the limit 0)."""
     np.negative(x, out=x)
-    np.exp(x, out=x)
+    with np.errstate(over="ignore"):
+        np.exp(x, out=x)
     x += 1.0
     return np.reciprocal(x, out=x)
 
 
-def ring_matrix(topology):
-    """The row-normalised 1-ring adjacency ``A`` ``(V, V)`` as a float32 scipy CSR matrix
-    (``meshseq.model.NeighborMean``'s; isolated vertices get a zero row)."""
+def ring_matrix(topology, dtype=np.float32):
+    """The row-normalised 1-ring adjacency ``A`` ``(V, V)`` as a scipy CSR matrix (duplicates
+    summed, columns sorted; isolated vertices get a zero row): the torch model's too
+    (``meshseq.model.NeighborMean``)."""
     import scipy.sparse as sp
 
     deg = np.maximum(topology.degrees, 1).astype(np.float64)
     A = (sp.diags(1.0 / deg) @ topology.adjacency).tocsr()
     A.sum_duplicates()
-    return A.astype(np.float32)
+    return A.astype(dtype)
 
 
 class NumpyNet:
