@@ -18,14 +18,16 @@ from __future__ import annotations
 import os
 
 import numpy as np
-import torch
 
 from meshseq import checkpoint as ckpt
 from meshseq.errors import MeshseqError
-from meshseq.model import BDLSTM, ModelConfig
+from meshseq.model_config import ModelConfig
 
 
-def _to_torch(x, device) -> tuple[torch.Tensor, bool]:
+def _to_torch(x, device):
+    """``(tensor on device, whether x was numpy)``."""
+    import torch
+
     if isinstance(x, torch.Tensor):
         return x.to(device=device, dtype=torch.float32), False
     return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device), True
@@ -40,7 +42,7 @@ def _check_finite(frames: np.ndarray, what: str) -> None:
                            "it diverged on this input")
 
 
-def _back(t: torch.Tensor, as_numpy: bool):
+def _back(t, as_numpy: bool):
     return t.detach().cpu().numpy() if as_numpy else t
 
 
@@ -48,23 +50,36 @@ class Model:
     """A trained BD-LSTM generator with its reference mesh and feature scaling.
 
     Attributes:
-        net: the ``BDLSTM`` torch module (eval mode).
+        net: the ``BDLSTM`` torch module (eval mode), or a ``meshseq.numpy_net.NumpyNet``
+            (``backend`` ``numpy``: no torch; arrays in and out are numpy, nothing is sampled).
+        engine: what synthesis runs (``meshseq.torch_net``'s interface): ``TorchNet(net)`` or ``net``.
         config: its ``ModelConfig``; ``meta``: the checkpoint's JSON.
         reference: ``(V, 3)`` float64 reference vertices; ``faces``: ``(F, 3)`` int64.
         scaling: the ``meshseq.acap.Scaling`` fitted on the training frames.
     """
 
-    def __init__(self, net: BDLSTM, meta: dict, reference: np.ndarray, faces: np.ndarray, device,
+    def __init__(self, net, meta: dict, reference: np.ndarray, faces: np.ndarray, device,
                  reconstructor=None):
         from meshseq.acap import Scaling
+        from meshseq.numpy_net import NumpyNet
 
-        self.net = net.eval()
+        self.backend = "numpy" if isinstance(net, NumpyNet) else "torch"
+        if self.backend == "numpy":
+            self.net = self.engine = net
+            self.device = "cpu"
+        else:
+            import torch
+
+            from meshseq.torch_net import TorchNet
+
+            self.net = net.eval()
+            self.device = torch.device(device)
+            self.engine = TorchNet(self.net, self.device)
         self.meta = meta
         self.config: ModelConfig = net.config
         self.reference = reference
         self.faces = faces
         self.scaling = Scaling.from_dict(meta["scaling"])
-        self.device = torch.device(device)
         self._reconstructor = reconstructor  # an acap.Reconstructor of (reference, faces); made when first needed
 
     def __repr__(self) -> str:
@@ -110,7 +125,7 @@ class Model:
 
         if self._reconstructor is None:
             self._reconstructor = acap.Reconstructor(self.reference, self.faces)
-        x = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+        x = x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)  # (a torch tensor)
         _check_finite(x, "features")
         v = self._reconstructor.solve(self.scaling.invert(x.astype(np.float64)))
         _check_finite(v, "vertices")
@@ -120,6 +135,11 @@ class Model:
 
     def encode(self, x):
         """Scaled features ``(..., V, 9)`` -> latent means ``mu`` ``(..., latent)``."""
+        if self.backend == "numpy":
+            f = np.asarray(x, dtype=np.float32)
+            return self.net.encode(f.reshape(-1, *f.shape[-2:])).reshape(*f.shape[:-2], -1)
+        import torch
+
         t, as_np = _to_torch(x, self.device)
         lead = t.shape[:-2]
         with torch.no_grad():
@@ -128,6 +148,12 @@ class Model:
 
     def decode(self, h):
         """LSTM outputs / latent codes ``(..., latent)`` -> frame changes ``dX`` ``(..., V, 9)``."""
+        if self.backend == "numpy":
+            z = np.asarray(h, dtype=np.float32)
+            d = self.net.decode(z.reshape(-1, z.shape[-1]))
+            return d.reshape(*z.shape[:-1], *d.shape[-2:])
+        import torch
+
         t, as_np = _to_torch(h, self.device)
         lead = t.shape[:-1]
         with torch.no_grad():
@@ -135,11 +161,15 @@ class Model:
         return _back(d.reshape(*lead, *d.shape[-2:]), as_np)
 
     def initial_state(self, batch: int = 1, direction: str = "forward", value: float | None = None):
-        """``(h, c)``, each ``(layers, batch, latent)`` torch tensors: +0.1 forward, -0.1 backward."""
+        """``(h, c)``, each ``(layers, batch, latent)`` torch tensors (numpy arrays on the numpy
+        backend): +0.1 forward, -0.1 backward."""
         if direction not in ("forward", "backward"):
             raise MeshseqError(f"direction {direction!r}: expected 'forward' or 'backward'")
         fwd = direction == "forward"
-        h, c = self.net.initial_state(batch if fwd else 0, 0 if fwd else batch, self.device)
+        if self.backend == "numpy":
+            h, c = self.net.initial_state(batch if fwd else 0, 0 if fwd else batch)
+        else:
+            h, c = self.net.initial_state(batch if fwd else 0, 0 if fwd else batch, self.device)
         if value is not None:
             h.fill_(value)
             c.fill_(value)
@@ -147,6 +177,13 @@ class Model:
 
     def step(self, state, x, direction: str = "forward", sample: bool = False):
         """G(s, X) -> (s', X + dX) for frames ``(B, V, 9)``; ``direction`` picks the LSTM (std-bd)."""
+        if self.backend == "numpy":
+            f = np.asarray(x, dtype=np.float32)
+            batch = f[None] if f.ndim == 2 else f
+            state, nxt = self.net.step(state, batch, len(batch) if direction == "forward" else 0, sample)
+            return state, nxt[0] if f.ndim == 2 else nxt
+        import torch
+
         t, as_np = _to_torch(x, self.device)
         single = t.dim() == 2
         if single:
@@ -159,6 +196,14 @@ class Model:
 
     def rollout(self, first, steps: int, direction: str = "forward", state=None, sample: bool = False):
         """Free-running frames ``(B, steps + 1, V, 9)`` from ``first`` ``(B, V, 9)``."""
+        if self.backend == "numpy":
+            f = np.asarray(first, dtype=np.float32)
+            if sample:
+                self.net.step(None, f, sample=True)  # (the one-line error)
+            state = self.initial_state(len(f), direction) if state is None else state
+            return self.net.rollout(f, int(steps), state, len(f) if direction == "forward" else 0)[0]
+        import torch
+
         t, as_np = _to_torch(first, self.device)
         if state is None:
             state = self.initial_state(t.shape[0], direction)
@@ -205,7 +250,10 @@ class Model:
         if f.ndim != 3 or f.shape[-1] != 3 or f.shape[1] != self.config.n_vertices:
             raise MeshseqError(f"frames must be (U, {self.config.n_vertices}, 3) vertices, got shape {f.shape}")
         feats = self.features(f)
-        torch.manual_seed(int(seed))
+        if self.backend == "torch":
+            import torch
+
+            torch.manual_seed(int(seed))
         gen = synthesize.predict(self, np.repeat(feats[None], int(samples), 0), n_frames, sample=True)
         return synthesize.assemble_vertices(self, np.concatenate([np.repeat(feats[None], len(gen), 0), gen], 1),
                                             {i: f[i] for i in range(len(f))})
@@ -233,13 +281,22 @@ class Model:
         return synthesize.complete_keyframes(self, keys, gaps, samples=samples, seed=0 if seed is None else seed)
 
 
-def load(run: str | os.PathLike, device: str = "cpu") -> Model:
+def load(run: str | os.PathLike, device: str = "cpu", backend: str = "torch") -> Model:
     """Load a trained model from a run folder (its newest usable checkpoint) or a checkpoint folder.
 
+    ``backend``: ``torch`` (the ``BDLSTM`` module on ``device``) or ``numpy`` (CPU inference
+    without torch, ``meshseq.numpy_net``: what ``meshseq predict`` / ``complete`` use on CPU;
+    ``device`` must then be ``cpu`` or ``auto``).
     Reads safetensors and JSON only (nothing is unpickled), checked by
     ``meshseq.checkpoint_schema``: a damaged or edited checkpoint, or one with non-finite
     weights, is a one-line MeshseqError naming the file and field.
     """
+    if backend == "numpy":
+        if device not in ("cpu", "auto"):
+            raise MeshseqError(f"--device {device}: the numpy inference runs on the CPU (device cpu or auto)")
+        loaded = ckpt.load(run, backend="numpy")
+        return Model(loaded.net, loaded.meta, loaded.reference.astype(np.float64), loaded.faces.astype(np.int64),
+                     "cpu")
     from meshseq.device import resolve_device
 
     dev = resolve_device(device)

@@ -45,18 +45,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
-from safetensors.torch import load_file, save
 
 from meshseq.checkpoint_schema import FORMAT, FORMAT_VERSION
 from meshseq.errors import MeshseqError, MeshseqWarning
 from meshseq.io import atomic_output
 from meshseq.mesh import topology_hash
+from meshseq.model_config import ModelConfig
 
 MODEL_TENSORS, MODEL_META = "model.safetensors", "model.json"
 STATE_TENSORS, STATE_META = "state.safetensors", "state.json"
 _DIR_RE = re.compile(r"^\d{8}$")
 BEST = "best"  # the folder of a run's best checkpoint on its validation block
+#: what ``load_folder`` builds the generator as: the torch module, or numpy inference (no torch)
+BACKENDS = ("torch", "numpy")
 
 
 def is_checkpoint_name(name: str) -> bool:
@@ -121,6 +122,9 @@ def save_checkpoint(
     non-finite tensor is refused (MeshseqError) before anything is written. ``name`` (e.g.
     ``BEST``): write ``RUN/checkpoints/<name>/`` instead, replacing it, and prune nothing.
     """
+    import torch
+    from safetensors.torch import save
+
     for what, tensors in (("model", model_tensors), ("training state", state_tensors)):
         for key, t in tensors.items():
             if t.is_floating_point() and not bool(torch.isfinite(t).all()):
@@ -174,8 +178,13 @@ def _read_json(path: Path):
         raise MeshseqError(f"{path}: cannot read ({err.strerror or err})") from None
 
 
-def _read_tensors(path: Path, meta: dict, meta_name: str) -> dict:
-    """The tensors of ``path`` if its SHA-256 is the one ``meta`` (already schema-checked) records."""
+def _read_tensors(path: Path, meta: dict, meta_name: str, backend: str = "torch") -> dict:
+    """The tensors of ``path`` (torch tensors, or numpy arrays for ``backend="numpy"``) if its
+    SHA-256 is the one ``meta`` (already schema-checked) records."""
+    if backend == "numpy":
+        from safetensors.numpy import load_file
+    else:
+        from safetensors.torch import load_file
     if not path.is_file():
         raise MeshseqError(f"{path}: missing")
     if meta["sha256"] != _sha256(path):
@@ -208,31 +217,30 @@ class Loaded:
         return f"Loaded({str(self.folder)!r}, iteration={self.meta['iteration']})"
 
 
-def load_folder(folder: str | os.PathLike, with_state: bool = False) -> Loaded:
+def load_folder(folder: str | os.PathLike, with_state: bool = False, backend: str = "torch") -> Loaded:
     """Load and check one checkpoint folder (the model part; the training state too if asked).
 
+    ``backend``: ``torch`` (``net`` a CPU ``BDLSTM``) or ``numpy`` (``net`` a
+    ``meshseq.numpy_net.NumpyNet``, and torch is not imported; the model part only).
     MeshseqError (one line naming the file and field) if anything is missing, damaged or not
     what the JSON describes, or if a weight is not finite.
     """
     from meshseq import checkpoint_schema as schema
-    from meshseq.mesh import Topology
-    from meshseq.model import BDLSTM, ModelConfig
 
+    if backend not in BACKENDS or (with_state and backend != "torch"):
+        raise ValueError(f"load_folder: backend {backend!r} (with_state={with_state})")
     folder = Path(folder)
     iteration = int(folder.name) if _DIR_RE.match(folder.name) else None
     meta = _read_json(folder / MODEL_META)
     schema.check_model_meta(meta, folder / MODEL_META, iteration)
-    tensors = _read_tensors(folder / MODEL_TENSORS, meta, MODEL_META)
+    tensors = _read_tensors(folder / MODEL_TENSORS, meta, MODEL_META, backend)
     schema.check_reference(tensors, meta, folder / MODEL_TENSORS)
-    reference = tensors["reference.vertices"].numpy()
-    faces = tensors["reference.faces"].numpy()
-    # the random initial weights are overwritten below: draw them from a forked generator, so
-    # loading (e.g. checking an older checkpoint while training) leaves the caller's noise alone
-    with torch.random.fork_rng(devices=[]):
-        net = BDLSTM(ModelConfig.from_dict(meta["model"], source=str(folder / MODEL_META)),
-                     Topology.from_faces(faces, len(reference)))
-    schema.check_model_tensors(tensors, net.state_dict(), folder / MODEL_TENSORS)
-    net.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    schema.check_model_tensors(tensors, meta, folder / MODEL_TENSORS)
+    reference = np.asarray(tensors["reference.vertices"])
+    faces = np.asarray(tensors["reference.faces"])
+    weights = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
+    net = _build_net(ModelConfig.from_dict(meta["model"], source=str(folder / MODEL_META)), weights, faces,
+                     backend)
     loaded = Loaded(folder, meta, net, reference, faces)
     if with_state:
         smeta = _read_json(folder / STATE_META)
@@ -241,6 +249,27 @@ def load_folder(folder: str | os.PathLike, with_state: bool = False) -> Loaded:
         schema.check_state_tensors(stensors, smeta, dict(net.named_parameters()), folder / STATE_TENSORS)
         loaded.state_meta, loaded.state_tensors = smeta, stensors
     return loaded
+
+
+def _build_net(config: ModelConfig, weights: dict, faces: np.ndarray, backend: str):
+    """The generator of ``config`` holding ``weights`` (checked): a ``BDLSTM`` or a ``NumpyNet``."""
+    from meshseq.mesh import Topology
+
+    topology = Topology.from_faces(faces, config.n_vertices)
+    if backend == "numpy":
+        from meshseq.numpy_net import NumpyNet, ring_matrix
+
+        return NumpyNet(config, weights, ring_matrix(topology))
+    import torch
+
+    from meshseq.model import BDLSTM
+
+    # the random initial weights are overwritten below: draw them from a forked generator, so
+    # loading (e.g. checking an older checkpoint while training) leaves the caller's noise alone
+    with torch.random.fork_rng(devices=[]):
+        net = BDLSTM(config, topology)
+    net.load_state_dict(weights)
+    return net
 
 
 def is_valid(folder: Path) -> bool:
@@ -252,7 +281,7 @@ def is_valid(folder: Path) -> bool:
     return True
 
 
-def load_latest(run_dir: str | os.PathLike, with_state: bool = False) -> Loaded:
+def load_latest(run_dir: str | os.PathLike, with_state: bool = False, backend: str = "torch") -> Loaded:
     """The newest usable checkpoint of a run; a damaged newer one is skipped with a warning.
 
     MeshseqError if the run has no checkpoint, or none is usable (naming the newest's problem).
@@ -263,7 +292,7 @@ def load_latest(run_dir: str | os.PathLike, with_state: bool = False) -> Loaded:
     problems = []
     for folder in reversed(folders):
         try:
-            loaded = load_folder(folder, with_state)
+            loaded = load_folder(folder, with_state, backend)
         except MeshseqError as err:
             problems.append(err)
             continue
@@ -301,14 +330,15 @@ def latest_checkpoint(run_dir: str | os.PathLike) -> Path | None:
         return None
 
 
-def load(path: str | os.PathLike) -> Loaded:
-    """The model part of a checkpoint folder, or of a run folder's newest usable checkpoint."""
+def load(path: str | os.PathLike, backend: str = "torch") -> Loaded:
+    """The model part of a checkpoint folder, or of a run folder's newest usable checkpoint
+    (``backend``: see ``load_folder``)."""
     p = Path(path)
     if (p / MODEL_META).is_file():
-        return load_folder(p)
+        return load_folder(p, backend=backend)
     if not p.exists():
         raise MeshseqError(f"{p}: no such run or checkpoint folder")
-    return load_latest(p)
+    return load_latest(p, backend=backend)
 
 
 def resolve(path: str | os.PathLike) -> Path:
@@ -338,6 +368,8 @@ def optimizer_state(optimizer: torch.optim.Optimizer, names: list[str]) -> tuple
 
     ``names[i]`` is the name of the optimizer's i-th parameter (in param_groups order).
     """
+    import torch
+
     sd = optimizer.state_dict()
     tensors, scalars = {}, {}
     for idx, st in sd["state"].items():
@@ -354,6 +386,8 @@ def optimizer_state(optimizer: torch.optim.Optimizer, names: list[str]) -> tuple
 
 def load_optimizer_state(optimizer: torch.optim.Optimizer, names: list[str], tensors: dict, meta: dict) -> None:
     """Inverse of :func:`optimizer_state` (tensors moved to each parameter's device)."""
+    import torch
+
     index = {n: i for i, n in enumerate(names)}
     params = [p for g in optimizer.param_groups for p in g["params"]]
     state: dict = {}
@@ -392,6 +426,8 @@ def rng_key(kind: str, rank: int = 0) -> str:
 
 def rng_state() -> tuple[dict, dict]:
     """Torch (CPU, and CUDA if initialised) generator states as tensors; Python's as JSON."""
+    import torch
+
     tensors = {"rng.torch": torch.get_rng_state()}
     if torch.cuda.is_available() and torch.cuda.is_initialized():
         tensors["rng.cuda"] = torch.cuda.get_rng_state()
@@ -402,6 +438,8 @@ def rng_state() -> tuple[dict, dict]:
 def set_rng_state(tensors: dict, meta: dict, rank: int = 0) -> bool:
     """Restore this process's generators (``rank``'s torch and CUDA states, Python's); False if
     the checkpoint has no torch state for ``rank`` (it was written by fewer processes)."""
+    import torch
+
     if "python_random" in meta:
         version, internal, gauss = meta["python_random"]
         random.setstate((version, tuple(internal), gauss))

@@ -23,7 +23,6 @@ from dataclasses import MISSING, fields
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from meshseq.errors import MeshseqError
 
@@ -136,7 +135,7 @@ _TOPOLOGY = {"hash": str, "n_vertices": int, "n_faces": int}
 
 
 def model_meta_schema() -> dict:
-    from meshseq.model import ModelConfig
+    from meshseq.model_config import ModelConfig
     from meshseq.training.config import TrainConfig
 
     return {
@@ -155,7 +154,7 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
     """
     from meshseq.acap.parts import CHANNEL_COUNTS
     from meshseq.acap.scaling import SCALING_MODES
-    from meshseq.model import ModelConfig
+    from meshseq.model_config import ModelConfig
     from meshseq.training.config import TrainConfig
 
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
@@ -268,16 +267,29 @@ def check_state_meta(meta, file: Path, iteration: int | None = None) -> None:
 # tensors
 
 
+def _dtype_name(t) -> str:
+    """``float32``, ``int64``, ... of a torch tensor or a numpy array (or a ``tensor_spec``)."""
+    return str(t.dtype).removeprefix("torch.")
+
+
+class TensorSpec:
+    """The shape and dtype a stored tensor must have (``check_like``'s expectations)."""
+
+    def __init__(self, shape: tuple[int, ...], dtype: str):
+        self.shape, self.dtype = tuple(shape), dtype
+
+
 def check_like(tensors: dict, expected: dict, file, exact: bool = False) -> None:
-    """CheckpointError unless ``tensors`` has ``expected``'s names, shapes and dtypes, finite
-    values (floating point) and, if ``exact``, no other tensors."""
+    """CheckpointError unless ``tensors`` (torch tensors or numpy arrays) has ``expected``'s names,
+    shapes and dtypes (``expected``: tensors, arrays or ``TensorSpec``), finite values (floating
+    point) and, if ``exact``, no other tensors."""
     missing = sorted(set(expected) - set(tensors))
     if missing:
         more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
         raise CheckpointError(file, "", f"the file lacks tensor {missing[0]}{more}")
     for name, want in expected.items():
         got = tensors[name]
-        if got.dtype != want.dtype or tuple(got.shape) != tuple(want.shape):
+        if _dtype_name(got) != _dtype_name(want) or tuple(got.shape) != tuple(want.shape):
             raise CheckpointError(file, name, f"{got.dtype} {tuple(got.shape)}, expected {want.dtype} "
                                   f"{tuple(want.shape)} (the model its JSON describes)")
     extra = sorted(set(tensors) - set(expected))
@@ -286,16 +298,21 @@ def check_like(tensors: dict, expected: dict, file, exact: bool = False) -> None
     _check_finite({k: tensors[k] for k in expected}, file)
 
 
-def _all_finite(t: torch.Tensor) -> bool:
+def _all_finite(t) -> bool:
     """Whether every value is finite: the minimum and maximum are (NaN propagates through both), one
     pass without ``isfinite``'s full-size mask (8x faster on a crane model's FC weight)."""
+    if isinstance(t, np.ndarray):
+        return bool(np.isfinite(t.min()) & np.isfinite(t.max()))
+    import torch
+
     lo, hi = torch.aminmax(t)
     return bool(torch.isfinite(lo) & torch.isfinite(hi))
 
 
 def _check_finite(tensors: dict, file) -> None:
     for name, t in tensors.items():
-        if t.is_floating_point() and t.numel() and not _all_finite(t):
+        floating = _dtype_name(t).startswith(("float", "bfloat"))
+        if floating and math.prod(t.shape) and not _all_finite(t):
             raise CheckpointError(file, name, "non-finite values (NaN or infinity): the run diverged; use an "
                                   "earlier checkpoint")
 
@@ -308,27 +325,29 @@ def check_reference(tensors: dict, meta: dict, file: Path) -> None:
 
     topo = meta["topology"]
     V, F = topo["n_vertices"], topo["n_faces"]
-    want = {"reference.vertices": torch.empty((V, 3), dtype=torch.float64),
-            "reference.faces": torch.empty((F, 3), dtype=torch.int64)}
+    want = {"reference.vertices": TensorSpec((V, 3), "float64"), "reference.faces": TensorSpec((F, 3), "int64")}
     check_like(tensors, want, file)
     faces = tensors["reference.faces"]
     if int(faces.min()) < 0 or int(faces.max()) >= V:
         raise CheckpointError(file, "reference.faces", f"vertex numbers outside 0..{V - 1}")
-    if topology_hash(faces.numpy(), V) != topo["hash"]:
+    if topology_hash(np.asarray(faces), V) != topo["hash"]:
         raise CheckpointError(file, "reference.faces", f"connectivity hash differs from topology.hash {topo['hash']} "
                               "in model.json")
 
 
-def check_model_tensors(tensors: dict, expected: dict, file: Path) -> None:
-    """CheckpointError unless model.safetensors holds ``model.<name>`` for every entry of
-    ``expected`` (the state dict of the model its JSON describes: same shapes and dtypes), finite,
+def check_model_tensors(tensors: dict, meta: dict, file: Path) -> None:
+    """CheckpointError unless model.safetensors holds ``model.<name>`` for every tensor of the model
+    ``meta`` (model.json, checked) describes (``model_config.tensor_shapes``, float32), finite,
     besides the reference mesh (:func:`check_reference`), and nothing else."""
-    want = {f"model.{k}": v for k, v in expected.items()}
+    from meshseq.model_config import ModelConfig, tensor_shapes
+
+    config = ModelConfig.from_dict(meta["model"], source=str(file))
+    want = {f"model.{k}": TensorSpec(shape, "float32") for k, shape in tensor_shapes(config).items()}
     want.update({k: tensors[k] for k in ("reference.vertices", "reference.faces")})  # checked before
     check_like(tensors, want, file, exact=True)
 
 
-def _check_like_parameter(t: torch.Tensor, params: dict, name: str, file: Path, key: str, what: str) -> None:
+def _check_like_parameter(t, params: dict, name: str, file: Path, key: str, what: str) -> None:
     """CheckpointError unless ``name`` is a parameter and ``t`` has its dtype and shape."""
     if name not in params:
         raise CheckpointError(file, key, f"{what} of an unknown parameter")
@@ -344,6 +363,8 @@ def check_state_tensors(tensors: dict, meta: dict, params: dict, file: Path) -> 
     ``meta`` (state.json), finite, valid torch generator states ``rng.torch[.rankR]`` and, behind a
     weight average (``ema_decay``), the weights training continues from, ``train.<param>``, for
     every parameter."""
+    import torch
+
     scalars = meta["optimizer"]["scalars"]
     listed = [n for g in meta["optimizer"]["param_groups"] for n in g["params"]]
     if sorted(listed) != sorted(params) or len(set(listed)) != len(listed):

@@ -17,7 +17,6 @@ Functions take arrays and a loaded ``meshseq.api.Model``; they print nothing.
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from meshseq import baselines
 from meshseq.align import per_vertex_error
@@ -236,7 +235,7 @@ def context_chains(model, feats: np.ndarray, starts: np.ndarray, gap: int, conte
         a, b = starts[rows], starts[rows] + gap + 1
         before = np.stack([feats[s - la:s] for s in a])
         after = np.stack([feats[s + 1:s + 1 + lb] for s in b])
-        state = warm_chain_states(model, model.net.initial_state(len(rows), len(rows), model.device), before, after)
+        state = warm_chain_states(model, model.engine.initial_state(len(rows), len(rows)), before, after)
         forward[rows], backward[rows] = run_chains(model, feats[a], feats[b], gap, state)
         trusted[rows] = context_fit(model, before, feats[a], after, feats[b]) < 1.0
     return forward, backward, trusted
@@ -247,7 +246,7 @@ def _completion_diversity(model, vertices: np.ndarray, feats: np.ndarray, starts
     """Mean pairwise diversity (x 1e-4) of ``samples`` random-state completions per start: start
     ``s`` draws the states ``complete(..., samples=samples, seed=seed + s)`` draws; all starts'
     chains run as one roll-out."""
-    state = join_chain_states([chain_states(model, samples, True, torch.Generator().manual_seed(seed + int(s)))
+    state = join_chain_states([chain_states(model, samples, True, seed + int(s))
                                for s in starts])
     rows = np.repeat(starts, samples)
     frames = join_chains(*run_chains(model, feats[rows], feats[rows + gap + 1], gap, state), "corrected")[0]

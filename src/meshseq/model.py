@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 import torch
@@ -58,133 +57,9 @@ from meshseq.kernels import (LSTMStep, MeshConvStack, fc_product, fc_product_and
                              fc_weight_gradient, fc_weight_gradient_supported, lstm_step_supported,
                              lstm_transposed, stack_frames)
 from meshseq.mesh import Topology
-
-VARIANTS = ("bd", "std-bd", "uni")
-CONV_IMPLS = ("gather", "sparse")
-#: the command-line options of ModelConfig fields (``meshseq train``), named in messages about them
-MODEL_OPTIONS = {"variant": "--variant", "conv_impl": "--conv", "latent": "--latent",
-                 "lstm_layers": "--lstm-layers", "conv_layers": "--conv-layers"}
-
-
-@dataclass
-class ModelConfig:
-    """Architecture of the generator; stored in every checkpoint's JSON.
-
-    ``latent`` is both the VAE latent width and the LSTM width (the decoder FC is the encoder FC
-    transposed, so the LSTM output must have the latent width).
-
-    ``step_scale`` (None = the paper: ``X_t+1 = X_t + dX``): per-channel factors ``(C,)`` so that
-    ``X_t+1 = X_t + step_scale * dX``; training sets them to the spread of the data's frame-to-frame
-    changes, so the decoder works in units of a typical step (see ``meshseq.train``).
-
-    ``input_norm`` (False = the paper): the encoder sees ``(X - offset) / spread`` instead of
-    ``X``, with ``offset`` ``(V, C)`` the mean training frame and ``spread`` ``(C,)`` the RMS of the
-    training frames around it per channel (buffers ``input_offset``/``input_spread``, set by
-    training with ``set_input_norm`` and stored with the weights): the frames then differ by O(1)
-    at the encoder's input, not by the few hundredths they differ by in the scaled space.
-
-    ``logvar_max`` (None = the paper: unbounded): the VAE head's log-variance is clamped to at
-    most this, so the sampling noise ``exp(logvar / 2)`` never exceeds ``exp(logvar_max / 2)``
-    (0: the prior's unit spread; see ``meshseq.train.RECIPES`` for why).
-
-    ``mu_max`` (None = the paper: unbounded): the VAE head's mean is squashed softly into
-    ``(-mu_max, mu_max)``, ``mu = mu_max * tanh(m / mu_max)`` (``m``: the head's output), so a
-    coherent Adam step on the large encoder FC cannot throw the latent far outside the prior's range.
-    """
-
-    n_vertices: int
-    channels: int = 9
-    conv_layers: int = 3
-    latent: int = 128
-    lstm_layers: int = 3
-    variant: str = "bd"
-    conv_impl: str = "sparse"
-    init_state: float = 0.1
-    step_scale: list[float] | None = None
-    input_norm: bool = False
-    logvar_max: float | None = None
-    mu_max: float | None = None
-
-    def __post_init__(self):
-        ModelConfig.check_options(self.__dict__)
-        if self.step_scale is not None:
-            self.step_scale = [float(v) for v in self.step_scale]
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def check_options(options: dict) -> None:
-        """MeshseqError (naming the command-line option) unless ``options`` (fields; ``n_vertices``
-        may be left out) make a valid config; for checking before any work starts."""
-        known = {f.name for f in fields(ModelConfig)}
-        unknown = set(options) - known
-        if unknown:
-            raise MeshseqError(f"unknown model options {sorted(unknown)}")
-        defaults = {f.name: f.default for f in fields(ModelConfig)}
-        problem = _model_config_problem({**defaults, "n_vertices": 1, **options})
-        if problem:
-            field, value, expected = problem
-            raise MeshseqError(f"{MODEL_OPTIONS.get(field, 'model option ' + field)} {value!r}: {expected}")
-
-    @staticmethod
-    def from_dict(d: dict, source: str = "stored model config") -> "ModelConfig":
-        """The config stored by :meth:`to_dict` (a checkpoint's ``model``). Its problems are
-        reported as stored fields of ``source`` (``source: model.variant ...``), not as
-        command-line options nobody gave."""
-        if not isinstance(d, dict):
-            raise MeshseqError(f"{source}: model config must be a JSON object, got {type(d).__name__}")
-        known = {f.name for f in fields(ModelConfig)}
-        unknown = set(d) - known
-        if unknown:
-            raise MeshseqError(f"{source}: model config has unknown keys {sorted(unknown)} (newer meshseq?)")
-        if "n_vertices" not in d:
-            raise MeshseqError(f"{source}: model config has no n_vertices")
-        defaults = {f.name: f.default for f in fields(ModelConfig) if f.name != "n_vertices"}
-        problem = _model_config_problem({**defaults, **d})
-        if problem:
-            field, value, expected = problem
-            raise MeshseqError(f"{source}: stored field model.{field} = {value!r}: {expected}")
-        return ModelConfig(**d)
-
-
-def is_finite_number(x) -> bool:
-    """A finite int or float (numpy floats too), not a bool: what a numeric option may hold."""
-    return (isinstance(x, (int, float, np.floating)) and not isinstance(x, bool)
-            and math.isfinite(x))
-
-
-def _model_config_problem(values: dict) -> tuple[str, object, str] | None:
-    """``(field, value, what was expected)`` of the first invalid ModelConfig field; None if valid."""
-    def is_int(x):
-        return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
-
-    if values["variant"] not in VARIANTS:
-        return "variant", values["variant"], f"expected one of {', '.join(VARIANTS)}"
-    if values["conv_impl"] not in CONV_IMPLS:
-        return "conv_impl", values["conv_impl"], f"expected one of {', '.join(CONV_IMPLS)}"
-    for name in ("n_vertices", "channels", "conv_layers", "latent", "lstm_layers"):
-        if not is_int(values[name]) or values[name] < 1:
-            return name, values[name], "expected an integer of at least 1"
-    if not isinstance(values["init_state"], (int, float, np.floating)) or not math.isfinite(values["init_state"]):
-        return "init_state", values["init_state"], "expected a number"
-    if not isinstance(values["input_norm"], (bool, np.bool_)):
-        return "input_norm", values["input_norm"], "expected true or false"
-    if values["logvar_max"] is not None and not is_finite_number(values["logvar_max"]):
-        return "logvar_max", values["logvar_max"], "expected a number or null"
-    mu_max = values["mu_max"]
-    if mu_max is not None and not (is_finite_number(mu_max) and mu_max > 0):
-        return "mu_max", mu_max, "expected a positive number or null"
-    scale = values["step_scale"]
-    if scale is not None:
-        try:
-            a = np.asarray(scale, dtype=np.float64)
-        except (TypeError, ValueError):
-            a = np.zeros(0)
-        if a.shape != (values["channels"],) or not (np.isfinite(a) & (a > 0)).all():
-            return "step_scale", scale, f"expected {values['channels']} positive numbers"
-    return None
-
+from meshseq.model_config import (CONV_IMPLS, MODEL_OPTIONS, VARIANTS, ModelConfig,  # noqa: F401 (re-exported)
+                                  is_finite_number)
+from meshseq.numpy_net import ring_matrix
 
 # --------------------------------------------------------------------------------------------
 # 1-ring mean operators
@@ -237,9 +112,7 @@ class NeighborMean(nn.Module):
         self.impl = impl
         self.n_vertices = topology.n_vertices
         deg = np.maximum(topology.degrees, 1).astype(np.float64)
-        import scipy.sparse as sp
-
-        A = (sp.diags(1.0 / deg) @ topology.adjacency).tocsr()
+        A = ring_matrix(topology, np.float64)
         self.register_buffer("A", _csr(A), persistent=False)
         self.register_buffer("At", _csr(A.T.tocsr()), persistent=False)
         if impl == "gather":

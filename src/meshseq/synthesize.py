@@ -1,12 +1,16 @@
 """Synthesis with a trained generator: prediction, completion between keyframes, diverse samples.
 
-All functions work on scaled features (the model's space, ``[-0.95, 0.95]``) as torch tensors or
-numpy arrays, and return numpy arrays. Shapes: V vertices, 9 channels, U given frames.
+All functions take and return numpy arrays: scaled features (the model's space, ``[-0.95, 0.95]``).
+They run the generator through ``model.engine``, a ``meshseq.torch_net.TorchNet`` or a
+``meshseq.numpy_net.NumpyNet`` (the same interface: numpy in and out, states ``(h, c)`` of
+``(K, B, L)`` float32 arrays), so this module imports no torch. Shapes: V vertices, 9 channels, U
+given frames.
 
 - ``predict``: feed U >= 1 given frames (warm-up: the state takes in frames 0..U-2 with the
   prediction discarded), then roll out free from frame U-1.
 - ``complete``: forward chain from key a and backward chain from key b (initial states +0.1 and
-  -0.1, or random ones for diversity), joined (``JOINS``): ``stitch``, the paper's, where they
+  -0.1, or random ones for diversity: ``uniform_states``, the same draws as torch's generator of
+  the seed), joined (``JOINS``): ``stitch``, the paper's, where they
   agree best (method.md 3, **decision**: at ``argmin_i ||S^f_i - S^b_{n+1-i}||`` over inner
   frames, with a short linear blend), ``corrected`` (``corrected_crossfade``), or ``anchored``
   (the default: the corrected join drawn toward the straight line between the keys as far as the
@@ -22,14 +26,12 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from meshseq.errors import MeshseqError
 
 
-def _tensor(model, x) -> torch.Tensor:
-    return torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x,
-                           dtype=torch.float32).to(model.device)
+def _frames(x) -> np.ndarray:
+    return np.asarray(x, dtype=np.float32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -47,12 +49,12 @@ FEATURE_BOUND = 1.0
 PACES = ("given", "model")
 
 
-def _rms(d: torch.Tensor) -> torch.Tensor:
+def _rms(d: np.ndarray) -> np.ndarray:
     """``(B, V, C)`` -> ``(B,)``: RMS over vertices and channels."""
-    return d.square().mean((-2, -1)).sqrt()
+    return np.sqrt(np.square(d).mean((-2, -1)))
 
 
-def pace_factor(given_steps: torch.Tensor, expected_steps: torch.Tensor) -> torch.Tensor:
+def pace_factor(given_steps: np.ndarray, expected_steps: np.ndarray) -> np.ndarray:
     """``(B, U-1)`` RMS sizes of the given frames' steps and of the steps the model predicted for
     the same transitions during its warm-up -> ``(B,)`` factor in [0, 1] on every generated step.
 
@@ -60,7 +62,7 @@ def pace_factor(given_steps: torch.Tensor, expected_steps: torch.Tensor) -> torc
     (at the turn of a swing both are small), so a motion held still or slowing down gives a small
     factor and a motion at the model's pace gives 1. The roll-out is never sped up.
     """
-    return (given_steps.mean(1) / expected_steps.mean(1).clamp_min(1e-12)).clamp(max=1.0)
+    return np.minimum(given_steps.mean(1) / np.maximum(expected_steps.mean(1), 1e-12), 1.0)
 
 
 def predict(model, given, n_frames: int, state=None, sample: bool = False,
@@ -72,7 +74,7 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         given: ``(U, V, 9)`` or batched ``(B, U, V, 9)`` scaled features, U >= 1.
         n_frames: frames to generate (any number; the roll-out is free-running).
         state: initial ``(h, c)``; default the forward chain's +0.1.
-        sample: draw the VAE latent instead of taking its mean.
+        sample: draw the VAE latent instead of taking its mean (the torch model only).
         bound: clamp every generated frame to ``[-bound, bound]`` (the training data fill
             ``[-0.95, 0.95]``), so long roll-outs stay within the data's range; None: no clamp.
         pace: ``given`` (default): with U >= 2, every generated step is scaled by
@@ -83,35 +85,33 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
     """
     if pace not in PACES:
         raise MeshseqError(f"unknown pace {pace!r}; expected one of {', '.join(PACES)}")
-    x = _tensor(model, given)
-    single = x.dim() == 3
+    x = _frames(given)
+    single = x.ndim == 3
     if single:
         x = x[None]
     bsz, u = x.shape[:2]
     if u < 1:
         raise MeshseqError("prediction needs at least one given frame")
-    net = model.net
+    net = model.engine
     if state is None:
-        state = model.initial_state(bsz, "forward")
-    out = torch.empty((bsz, int(n_frames)) + tuple(x.shape[2:]))
-    with torch.no_grad():
-        expected = []
-        for i in range(u - 1):  # warm-up on the given frames
-            state, guess, _, _ = net.step(state, x[:, i], sample=sample, n_forward=bsz)
-            expected.append(_rms(guess - x[:, i]))
-        factor = None
-        if pace == "given" and u > 1:
-            factor = pace_factor(_rms(x[:, 1:] - x[:, :-1]), torch.stack(expected, 1))[:, None, None]
-        cur = x[:, -1]
-        for t in range(int(n_frames)):  # free-running; the time loop is the only Python loop
-            prev = cur
-            state, cur, _, _ = net.step(state, cur, sample=sample, n_forward=bsz)
-            if factor is not None:
-                cur = torch.lerp(prev, cur, factor)
-            if bound is not None:
-                cur = cur.clamp(-bound, bound)
-            out[:, t] = cur.cpu()
-    out = out.numpy()
+        state = net.initial_state(bsz, 0)
+    out = np.empty((bsz, int(n_frames)) + x.shape[2:], dtype=np.float32)
+    expected = []
+    for i in range(u - 1):  # warm-up on the given frames
+        state, guess = net.step(state, x[:, i], n_forward=bsz, sample=sample)
+        expected.append(_rms(guess - x[:, i]))
+    factor = None
+    if pace == "given" and u > 1:
+        factor = pace_factor(_rms(x[:, 1:] - x[:, :-1]), np.stack(expected, 1))[:, None, None]
+    cur = x[:, -1]
+    for t in range(int(n_frames)):  # free-running; the time loop is the only Python loop
+        prev = cur
+        state, cur = net.step(state, cur, n_forward=bsz, sample=sample)
+        if factor is not None:
+            cur = prev + factor * (cur - prev)
+        if bound is not None:
+            cur = np.clip(cur, -bound, bound)
+        out[:, t] = cur
     return out[0] if single else out
 
 
@@ -134,33 +134,48 @@ class Completion:
     evaluations: int = 0  # roll-outs an optimiser used (CMA-ES); 0 for the chains
 
 
-def chain_states(model, samples: int, random_state: bool, generator: torch.Generator | None):
-    """Initial states for ``samples`` forward chains followed by ``samples`` backward chains."""
-    h, c = model.net.initial_state(samples, samples, model.device)
+def uniform_states(shape: tuple[int, ...], seed: int | None, count: int = 2) -> list[np.ndarray]:
+    """``count`` float32 arrays of ``shape`` from U(-0.1, 0.1), drawn one after the other from one
+    generator: for an int ``seed`` exactly what ``torch.rand(shape, generator=torch.Generator()
+    .manual_seed(seed)) * 0.2 - 0.1`` gives for each (torch's CPU generator is MT19937 seeded as
+    numpy's legacy seeding, and ``torch.rand`` keeps 24 bits of each 32-bit draw); None: unseeded."""
+    bits = np.random.MT19937()
+    if seed is None:
+        bits = np.random.MT19937(np.random.SeedSequence())
+    else:
+        bits._legacy_seeding(int(seed) & 0xFFFFFFFF)
+    n = int(np.prod(shape))
+    raw = bits.random_raw(count * n) & np.uint64(2**24 - 1)
+    u = (raw.astype(np.float32) * np.float32(2.0**-24)).reshape((count,) + tuple(shape))
+    return [a * np.float32(0.2) - np.float32(0.1) for a in u]
+
+
+def chain_states(model, samples: int, random_state: bool, seed: int | None = None):
+    """Initial states ``(h, c)`` ``(K, 2 samples, L)`` for ``samples`` forward chains followed by
+    ``samples`` backward chains: the trained ones, or ``uniform_states`` of ``seed``."""
+    h, c = model.engine.initial_state(samples, samples)
     if random_state:
-        for t in (h, c):
-            noise = torch.rand(t.shape, generator=generator) * 0.2 - 0.1  # U(-0.1, 0.1)
-            t.copy_(noise.to(t.device))
+        h, c = uniform_states(h.shape, seed)
     return h, c
 
 
-def join_chain_states(states: list[tuple[torch.Tensor, torch.Tensor]]) -> tuple[torch.Tensor, torch.Tensor]:
+def join_chain_states(states: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
     """Several groups' initial states ``(h, c)``, each ``(K, 2 S_i, L)`` (``S_i`` forward rows, then
     ``S_i`` backward rows), as one batch ``(K, 2 sum S_i, L)``: every group's forward rows, then
     every group's backward rows, groups in order (the layout ``run_chains`` takes)."""
-    def rows(t: torch.Tensor, backward: bool) -> torch.Tensor:
+    def rows(t: np.ndarray, backward: bool) -> np.ndarray:
         half = t.shape[1] // 2
         return t[:, half:] if backward else t[:, :half]
 
-    return tuple(torch.cat([rows(st[i], back) for back in (False, True) for st in states], dim=1)
+    return tuple(np.concatenate([rows(st[i], back) for back in (False, True) for st in states], axis=1)
                  for i in range(2))
 
 
-def seeded_chain_states(model, seeds: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+def seeded_chain_states(model, seeds: list[int]) -> tuple[np.ndarray, np.ndarray]:
     """Random initial states of ``len(seeds)`` completions as one batch: completion ``i``'s are the
     ones a one-sample ``complete(..., random_state=True, seed=seeds[i])`` draws, so a batched
     roll-out of them gives what the one-sample calls give (to float32 rounding)."""
-    return join_chain_states([chain_states(model, 1, True, torch.Generator().manual_seed(int(s))) for s in seeds])
+    return join_chain_states([chain_states(model, 1, True, int(s)) for s in seeds])
 
 
 def warm_chain_states(model, state, before=None, after=None):
@@ -174,13 +189,12 @@ def warm_chain_states(model, state, before=None, after=None):
     for rows, frames, n_forward in ((slice(0, pairs), before, pairs), (slice(pairs, None), after, 0)):
         st = (state[0][:, rows], state[1][:, rows])
         if frames is not None and np.shape(frames)[1]:
-            x = _tensor(model, frames)
+            x = _frames(frames)
             order = range(x.shape[1]) if n_forward else range(x.shape[1] - 1, -1, -1)
-            with torch.no_grad():
-                for i in order:
-                    st, _, _, _ = model.net.step(st, x[:, i], n_forward=n_forward)
+            for i in order:
+                st, _ = model.engine.step(st, x[:, i], n_forward=n_forward)
         sides.append(st)
-    return tuple(torch.cat([sides[0][k], sides[1][k]], 1) for k in range(2))
+    return tuple(np.concatenate([sides[0][k], sides[1][k]], 1) for k in range(2))
 
 
 def context_fit(model, before, key_a, after, key_b) -> np.ndarray:
@@ -202,12 +216,9 @@ def context_fit(model, before, key_a, after, key_b) -> np.ndarray:
         else:
             path = np.concatenate([key, np.asarray(frames)], 1)[:, ::-1]
         p = path.shape[0]
-        state = model.net.initial_state(p, 0, model.device) if n_forward is None else \
-            model.net.initial_state(0, p, model.device)
-        with torch.no_grad():
-            rolled, _, _, _ = model.net.rollout(_tensor(model, path[:, 0]), path.shape[1] - 1, state,
-                                                n_forward=n_forward)
-        fits.append(_side_fit(path.astype(np.float64), rolled.cpu().numpy()))
+        state = model.engine.initial_state(p, 0) if n_forward is None else model.engine.initial_state(0, p)
+        rolled, _ = model.engine.rollout(_frames(path[:, 0]), path.shape[1] - 1, state, n_forward=n_forward)
+        fits.append(_side_fit(path.astype(np.float64), rolled))
     if not fits:
         return np.full(np.shape(key_a)[0], np.inf)
     return np.max(fits, axis=0)
@@ -237,11 +248,9 @@ def run_chains(model, keys_a, keys_b, n_between: int, state) -> tuple[np.ndarray
         ``(forward, backward)``, each ``(P, n_between + 2, V, 9)``; ``forward[p, 0]`` is
         ``keys_a[p]``, ``backward[p, 0]`` is ``keys_b[p]`` (the backward chain's own order).
     """
-    a, b = _tensor(model, keys_a), _tensor(model, keys_b)
+    a, b = _frames(keys_a), _frames(keys_b)
     pairs = a.shape[0]
-    with torch.no_grad():
-        frames, _, _, _ = model.net.rollout(torch.cat([a, b]), n_between + 1, state, n_forward=pairs)
-    frames = frames.cpu().numpy()
+    frames, _ = model.engine.rollout(np.concatenate([a, b]), n_between + 1, state, n_forward=pairs)
     return frames[:pairs], frames[pairs:]
 
 
@@ -268,8 +277,8 @@ def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int
     ramp = np.linspace(0.0, 1.0, n).astype(forward.dtype)[None, :, None, None]
     miss = (forward[:, -1] - backward[:, 0]) + (backward[:, -1] - forward[:, 0])  # (P, V, C)
     frames = forward * (1 - ramp)
-    frames += back * ramp
-    frames -= (ramp * (1 - ramp)) * miss[:, None]
+    frames += np.multiply(back, ramp, out=diff)  # (diff's memory reused: same bits, no temporaries)
+    frames -= np.multiply(ramp * (1 - ramp), miss[:, None], out=diff)
     if join == "anchored":
         line = forward[:, :1] * (1 - ramp) + backward[:, :1] * ramp  # (P, n, V, C)
         w = reach_weights(forward, backward)
@@ -400,16 +409,14 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
     if seeds is not None:
         samples, state = len(seeds), seeded_chain_states(model, seeds)
     else:
-        gen = torch.Generator().manual_seed(int(seed)) if seed is not None else None
-        state = chain_states(model, samples, random_state, gen)
-    keys_a, keys_b = (_tensor(model, k)[None].expand(samples, -1, -1) for k in (key_a, key_b))
-    ctx_a, ctx_b = (None if c is None else np.broadcast_to(np.asarray(c), (samples,) + np.shape(c))
+        state = chain_states(model, samples, random_state, seed)
+    keys_a, keys_b = (np.broadcast_to(_frames(k)[None], (samples,) + np.shape(k)) for k in (key_a, key_b))
+    ctx_a, ctx_b = (None if c is None else np.broadcast_to(_frames(c), (samples,) + np.shape(c))
                     for c in (before, after))
     trusted = None
     if ctx_a is not None or ctx_b is not None:
         state = warm_chain_states(model, state, ctx_a, ctx_b)
-        fit = context_fit(model, ctx_a, keys_a.cpu().numpy(), ctx_b, keys_b.cpu().numpy())
-        trusted = fit < 1.0
+        trusted = context_fit(model, ctx_a, keys_a, ctx_b, keys_b) < 1.0
     forward, backward = run_chains(model, keys_a, keys_b, n_between, state)
     frames, meets, gaps = join_chains(forward, backward, join, blend, trusted=trusted)
     frames[:, 0] = np.asarray(key_a)
@@ -427,34 +434,32 @@ def complete_cma(model, key_a, key_b, n_between: int, max_evals: int = 400, max_
     """
     import cma
 
-    a, b = _tensor(model, key_a), _tensor(model, key_b)
+    a, b = _frames(key_a), _frames(key_b)
     n = n_between + 2
-    h0, c0 = model.initial_state(1, "forward")
+    h0, c0 = model.engine.initial_state(1, 0)
     shape = h0.shape  # (K, 1, L)
-    x0 = torch.cat([h0.reshape(-1), c0.reshape(-1)]).cpu().numpy().astype(np.float64)
+    x0 = np.concatenate([h0.reshape(-1), c0.reshape(-1)]).astype(np.float64)
     opts = {"seed": int(seed) + 1, "maxfevals": int(max_evals), "verbose": -9, "CMA_diagonal": True}
     if popsize:
         opts["popsize"] = int(popsize)
     es = cma.CMAEvolutionStrategy(x0, sigma, opts)
     half = x0.size // 2
 
-    def rollout(states: np.ndarray) -> torch.Tensor:
+    def rollout(states: np.ndarray) -> np.ndarray:
         p = len(states)
-        st = torch.as_tensor(states, dtype=torch.float32, device=model.device)
-        h = st[:, :half].reshape(p, shape[0], shape[2]).transpose(0, 1).contiguous()
-        c = st[:, half:].reshape(p, shape[0], shape[2]).transpose(0, 1).contiguous()
-        with torch.no_grad():
-            frames, _, _, _ = model.net.rollout(a[None].expand(p, -1, -1), n - 1, (h, c), n_forward=p)
-        return frames
+        st = np.asarray(states, dtype=np.float32)
+        h = np.ascontiguousarray(st[:, :half].reshape(p, shape[0], shape[2]).transpose(1, 0, 2))
+        c = np.ascontiguousarray(st[:, half:].reshape(p, shape[0], shape[2]).transpose(1, 0, 2))
+        return model.engine.rollout(np.broadcast_to(a[None], (p,) + a.shape), n - 1, (h, c), n_forward=p)[0]
 
     start = time.monotonic()
     while not es.stop() and time.monotonic() - start < max_seconds:
         pop = es.ask()
         last = rollout(np.asarray(pop))[:, -1]
-        loss = ((last - b[None]) ** 2).mean(dim=(1, 2)).cpu().numpy()
+        loss = ((last - b[None]) ** 2).mean(axis=(1, 2))
         es.tell(pop, loss.astype(np.float64).tolist())
     best = es.result.xbest if es.result.xbest is not None else x0
-    frames = rollout(np.asarray(best)[None]).cpu().numpy()
+    frames = rollout(np.asarray(best)[None])
     gap = float(np.sqrt(((frames[0, -1] - np.asarray(key_b)) ** 2).mean()))
     frames[:, 0] = np.asarray(key_a)
     frames[:, -1] = np.asarray(key_b)
@@ -581,6 +586,9 @@ def pass_through_anchors(recon: np.ndarray, anchors: dict[int, np.ndarray], deca
     true = np.stack([np.asarray(anchors[k], dtype=np.float64) for k in keys])  # (A, V, 3)
     corr = true[None] - recon[:, keys]  # (S, A, V, 3): centroid + residual
     w_corr, w_cent = anchor_weights(recon.shape[1], keys, decay)
-    out = recon + np.einsum("ta,savd->stvd", w_corr, corr) + (w_cent @ true.mean(axis=1))[None, :, None]
+    # (T, A) @ (S, A, V*3): one matmul (the einsum took 0.18 s for 8 crane completions)
+    out = np.matmul(w_corr, corr.reshape(corr.shape[0], len(keys), -1)).reshape(recon.shape)
+    out += recon
+    out += (w_cent @ true.mean(axis=1))[None, :, None]
     out[:, keys] = true[None]
     return out

@@ -96,7 +96,8 @@ def register(sub) -> None:
 def _run_data(p) -> None:
     p.add_argument("run", metavar="RUN", help="a training run folder (or one of its checkpoints)")
     p.add_argument("data", metavar="DATA", help="a sequence of the model's mesh (see `meshseq --help`)")
-    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda; predict and complete run "
+                   "on CPU without torch (MESHSEQ_INFERENCE=torch: with it)")
 
 
 def _output(p) -> None:
@@ -117,12 +118,12 @@ def _int_list(text: str, option: str) -> list[int]:
     return values
 
 
-def _load(args):
-    """Model, sequence (checked against the model's mesh) and its scaled features."""
+def _load(args, backend: str = "torch"):
+    """Model (``backend``: ``meshseq.api.load``'s) and sequence, checked against the model's mesh."""
     from meshseq.api import load
     from meshseq.io import load_sequence
 
-    model = load(args.run, device=args.device)
+    model = load(args.run, device=args.device, backend=backend)
     seq = load_sequence(args.data)
     model.check_mesh(seq.faces, seq.n_vertices, what=args.data)
     return model, seq
@@ -192,6 +193,9 @@ def _write(seq_vertices: np.ndarray, faces: np.ndarray, name: str, args, fps=Non
 
 
 def cmd_predict(args) -> int:
+    from meshseq.device import inference_setup
+
+    backend = inference_setup(args.device)  # (before numpy loads)
     import numpy as np
 
     from meshseq import baselines, synthesize
@@ -202,7 +206,7 @@ def cmd_predict(args) -> int:
         raise MeshseqError(f"--given {args.given}: expected at least 1")
     if args.frames < 1:
         raise MeshseqError(f"--frames {args.frames}: expected at least 1")
-    model, seq = _load(args)
+    model, seq = _load(args, backend)
     if not 0 <= args.start < seq.n_frames:
         raise MeshseqError(f"--start {args.start}: {args.data} has frames 0..{seq.n_frames - 1}")
     if args.start + args.given > seq.n_frames:
@@ -240,6 +244,9 @@ def _recorded_heldout(model, seq) -> tuple[int, int] | None:
 
 
 def cmd_complete(args) -> int:
+    from meshseq.device import inference_setup
+
+    backend = inference_setup(args.device)  # (before numpy loads)
     import numpy as np
 
     from meshseq import baselines, synthesize
@@ -262,7 +269,7 @@ def cmd_complete(args) -> int:
                            "sample and diversity.json); give a path without an extension")
     if args.method not in synthesize.METHOD_JOINS and args.samples > 1:
         raise MeshseqError(f"--samples {args.samples}: several samples need --method ours or stitch")
-    model, seq = _load(args)
+    model, seq = _load(args, backend)
     if keys[0] < 0 or keys[-1] >= seq.n_frames:
         raise MeshseqError(f"--keyframes {args.keyframes}: {args.data} has frames 0..{seq.n_frames - 1}")
     gaps = [args.between if args.between is not None else b - a - 1 for a, b in zip(keys, keys[1:])]
@@ -276,7 +283,7 @@ def cmd_complete(args) -> int:
         path = _write(samples_v[0], seq.faces, f"{seq.name}_completed", args, seq.fps)
         print(f"wrote {path}: {len(samples_v[0])} frames through keyframes {keys} ({args.method})")
         return 0
-    diversity = baselines.pairwise_diversity(np.stack(samples_v))
+    diversity = baselines.pairwise_diversity(samples_v)
     fmt = args.format or "npz"
     with atomic_output(args.output, force=args.force) as tmp:
         tmp.mkdir()

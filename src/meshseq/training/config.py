@@ -16,7 +16,7 @@ import numpy as np
 
 from meshseq.data.windows import check_holdout, check_validation
 from meshseq.errors import MeshseqError
-from meshseq.model import is_finite_number
+from meshseq.model_config import is_finite_number
 
 PRECISIONS = ("float32", "bf16")
 
@@ -326,7 +326,7 @@ def _without_flag(err: MeshseqError, key: str = "") -> str:
 
 def _model_table(file: str, table: dict) -> dict:
     """The ``[model]`` table of a config file, checked by ``ModelConfig.check_options``."""
-    from meshseq.model import ModelConfig
+    from meshseq.model_config import ModelConfig
 
     for key, value in table.items():
         if key not in MODEL_KEYS:

@@ -1,0 +1,239 @@
+"""The generator's inference step in numpy and scipy: what ``predict`` and ``complete`` run on CPU
+without importing torch (its import is most of a short command's time).
+
+``NumpyNet`` (the interface of ``meshseq.torch_net.TorchNet``) computes what ``meshseq.model.BDLSTM.step`` computes with ``sample=False`` (see that
+module's docstring for the step), from the same tensors (a checkpoint's ``model.*`` entries), to
+float32 rounding (tests/test_numpy_net.py: 1e-5 on every variant, with and without input_norm):
+
+- frames inside are vertex-major ``(V, B, C)``: the ring mean is one scipy CSR product with the
+  ``(V, B*C)`` view, a layer's channel maps are GEMMs of the ``(V*B, C)`` view;
+- the big FC takes batch-major ``(B, V*C)`` rows (its weight's column order ``v*C + c``);
+- the LSTM layers are ``torch.lstm_cell``'s arithmetic, gates in torch's order ``i, f, g, o``.
+
+Shapes: B rows (chains), V vertices, C channels, L latent, K LSTM layers. No sampling (the VAE
+latent is its mean): sampling runs on the torch model.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from meshseq.errors import MeshseqError
+from meshseq.model_config import ModelConfig
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    """In place: ``1 / (1 + exp(-x))`` (``exp`` overflowing to infinity gives the limit 0)."""
+    np.negative(x, out=x)
+    with np.errstate(over="ignore"):
+        np.exp(x, out=x)
+    x += 1.0
+    return np.reciprocal(x, out=x)
+
+
+def ring_matrix(topology, dtype=np.float32):
+    """The row-normalised 1-ring adjacency ``A`` ``(V, V)`` as a scipy CSR matrix (duplicates
+    summed, columns sorted; isolated vertices get a zero row): the torch model's too
+    (``meshseq.model.NeighborMean``)."""
+    import scipy.sparse as sp
+
+    deg = np.maximum(topology.degrees, 1).astype(np.float64)
+    A = (sp.diags(1.0 / deg) @ topology.adjacency).tocsr()
+    A.sum_duplicates()
+    return A.astype(dtype)
+
+
+class NumpyNet:
+    """``BDLSTM``'s inference (``step``, ``rollout``, ``initial_state``) on numpy arrays.
+
+    Args:
+        config: the checkpoint's ``ModelConfig``.
+        tensors: ``{name: array}`` with the ``BDLSTM`` parameter and buffer names (``fc.weight``,
+            ``convs.0.weight``, ``lstm.weight_ih_l0``, ...), float32.
+        ring: ``ring_matrix(topology)``.
+        threads: threads of the conv layers (blocks of vertices); default ``frame_threads()``.
+    """
+
+    def __init__(self, config: ModelConfig, tensors: dict, ring, threads: int | None = None):
+        self.config = config
+        t = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in tensors.items()}
+        C, K = config.channels, config.conv_layers
+        self.ring = ring
+        self._ring_parts, self._pool = self._split_ring(ring, threads)
+        # (w_self, w_ring, bias) as right factors of (rows, C_in) views: encoder W1, W2 (C_in, C_out)
+        convs = [(t[f"convs.{k}.weight"][:C], t[f"convs.{k}.weight"][C:], t[f"convs.{k}.bias"]) for k in range(K)]
+        self.enc = convs
+        # decoder layer k: encoder layer K-1-k transposed, its own bias
+        self.dec = [(np.ascontiguousarray(convs[K - 1 - k][0].T), np.ascontiguousarray(convs[K - 1 - k][1].T),
+                     t[f"dec_conv_bias.{k}"]) for k in range(K)]
+        self.fc_weight, self.fc_bias, self.dec_bias = t["fc.weight"], t["fc.bias"], t["dec_fc_bias"]
+        self.fc_weight_t = self.fc_weight.T  # (N, L) view: the encoder's right factor
+        self.mu = (t["fc_mu.weight"].T, t["fc_mu.bias"])
+        self.lstms = [self._lstm_weights(t, "lstm")]
+        if config.variant == "std-bd":
+            self.lstms.append(self._lstm_weights(t, "lstm_backward"))
+        self.scale = None if config.step_scale is None else np.asarray(config.step_scale, dtype=np.float32)
+        self.norm = None
+        if config.input_norm:  # (V, C) offset, (C,) spread: stored (C, V, 1), (C, 1, 1)
+            self.norm = (np.ascontiguousarray(t["input_offset"][:, :, 0].T), t["input_spread"].reshape(-1))
+
+    @staticmethod
+    def _split_ring(ring, threads: int | None):
+        """``([(rows of A, their slice)], pool)``: one block of vertices per thread (pool None: one)."""
+        from meshseq.acap.features import frame_threads
+
+        V = ring.shape[0]
+        n = max(1, min(frame_threads() if threads is None else threads, V // 1024))
+        bounds = [V * i // n for i in range(n + 1)]
+        parts = [(ring[a:b], slice(a, b)) for a, b in zip(bounds, bounds[1:])]
+        if n == 1:
+            return parts, None
+        from concurrent.futures import ThreadPoolExecutor
+
+        return parts, ThreadPoolExecutor(n)
+
+    def _lstm_weights(self, t: dict, name: str) -> list[tuple]:
+        """Per layer ``(W_ih^T (L_in, 4L), W_hh^T (L, 4L), b_ih + b_hh (4L,))``."""
+        return [(t[f"{name}.weight_ih_l{k}"].T, t[f"{name}.weight_hh_l{k}"].T,
+                 t[f"{name}.bias_ih_l{k}"] + t[f"{name}.bias_hh_l{k}"]) for k in range(self.config.lstm_layers)]
+
+    # -- the pieces (vertex-major (V, B, C)) ----------------------------------------------------
+
+    def _conv(self, x: np.ndarray, layer: tuple, act: bool) -> np.ndarray:
+        """One mesh-conv layer ``(V, B, C_in)`` -> ``(V, B, C_out)``: ``x W1 + (A x) W2 + b`` [tanh],
+        one block of vertices per thread (scipy's product and numpy release the GIL)."""
+        w_self, w_ring, bias = layer
+        V, B, C = x.shape
+        out = np.empty((V, B, w_self.shape[1]), dtype=np.float32)
+        cols = x.reshape(V, B * C)
+
+        def rows(part: int) -> None:
+            ring, r = self._ring_parts[part]
+            y = x[r].reshape(-1, C) @ w_self
+            y += (ring @ cols).reshape(-1, C) @ w_ring
+            y += bias
+            if act:
+                np.tanh(y, out=y)
+            out[r] = y.reshape(-1, B, y.shape[1])
+
+        self._map(rows)
+        return out
+
+    def _fc(self, x: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
+        """``x @ weight + bias`` ``(B, M)``, a block of the M output columns per thread (the big
+        FC: each thread streams its share of the weight; BLAS runs one thread per caller)."""
+        out = np.empty((x.shape[0], weight.shape[1]), dtype=np.float32)
+        bounds = np.linspace(0, weight.shape[1], len(self._ring_parts) + 1).astype(int)
+
+        def cols(part: int) -> None:
+            a, b = bounds[part], bounds[part + 1]
+            np.matmul(x, weight[:, a:b], out=out[:, a:b])
+            out[:, a:b] += bias[a:b]
+
+        self._map(cols)
+        return out
+
+    def _map(self, work) -> None:
+        """``work(part)`` for every block (``_split_ring``), on the pool when there is one."""
+        if self._pool is None:
+            work(0)
+        else:
+            list(self._pool.map(work, range(len(self._ring_parts))))
+
+    def _encode(self, x: np.ndarray) -> np.ndarray:
+        """``(V, B, C)`` -> ``mu`` ``(B, L)``."""
+        if self.norm is not None:
+            x = (x - self.norm[0][:, None]) / self.norm[1]
+        for layer in self.enc:
+            x = self._conv(x, layer, True)
+        V, B, C = x.shape
+        e = self._fc(np.ascontiguousarray(x.transpose(1, 0, 2)).reshape(B, V * C), self.fc_weight_t, self.fc_bias)
+        mu = e @ self.mu[0]
+        mu += self.mu[1]
+        if self.config.mu_max is not None:
+            m = np.float32(self.config.mu_max)
+            mu = m * np.tanh(mu / m)
+        return mu
+
+    def _decode(self, h: np.ndarray) -> np.ndarray:
+        """``(B, L)`` -> ``dX`` ``(V, B, C)`` (tied FC, decoder convs; no tanh after the last)."""
+        B, V, C = h.shape[0], self.config.n_vertices, self.config.channels
+        y = self._fc(h, self.fc_weight, self.dec_bias)
+        y = np.ascontiguousarray(y.reshape(B, V, C).transpose(1, 0, 2))
+        K = len(self.dec)
+        for k, layer in enumerate(self.dec):
+            y = self._conv(y, layer, k < K - 1)
+        return y
+
+    def _lstm_rows(self, weights: list, z: np.ndarray, h: np.ndarray, c: np.ndarray):
+        """Layers of one LSTM for ``z`` ``(B, L)``, ``h``, ``c`` ``(K, B, L)`` -> ``(out, h', c')``."""
+        L = h.shape[-1]
+        hs, cs, x = [], [], z
+        for k, (w_ih, w_hh, b) in enumerate(weights):
+            g = x @ w_ih
+            g += h[k] @ w_hh
+            g += b
+            _sigmoid(g[:, : 2 * L])
+            _sigmoid(g[:, 3 * L:])
+            np.tanh(g[:, 2 * L: 3 * L], out=g[:, 2 * L: 3 * L])
+            ck = g[:, L: 2 * L] * c[k]
+            ck += g[:, :L] * g[:, 2 * L: 3 * L]
+            x = g[:, 3 * L:] * np.tanh(ck)
+            hs.append(x)
+            cs.append(ck)
+        return x, np.stack(hs), np.stack(cs)
+
+    def _lstm(self, z: np.ndarray, state, n_forward: int | None):
+        """One step of the LSTM(s): rows ``n_forward:`` use the backward LSTM (std-bd)."""
+        h, c = state
+        if len(self.lstms) == 1 or n_forward is None or n_forward >= len(z):
+            out, h2, c2 = self._lstm_rows(self.lstms[0], z, h, c)
+            return out, (h2, c2)
+        f, b = slice(0, n_forward), slice(n_forward, None)
+        parts = [self._lstm_rows(w, z[r], h[:, r], c[:, r]) for w, r in ((self.lstms[0], f), (self.lstms[1], b))]
+        return (np.concatenate([p[0] for p in parts]),
+                (np.concatenate([p[1] for p in parts], 1), np.concatenate([p[2] for p in parts], 1)))
+
+    def _step_vm(self, state, x: np.ndarray, n_forward: int | None):
+        """``(state, x (V, B, C))`` -> ``(state', x + dX (V, B, C))``."""
+        mu = self._encode(x)
+        out, state = self._lstm(mu, state, n_forward)
+        d = self._decode(out)
+        if self.scale is not None:
+            d *= self.scale
+        d += x
+        return state, d
+
+    # -- public, batch-major (as BDLSTM) --------------------------------------------------------
+
+    def initial_state(self, n_forward: int, n_backward: int = 0):
+        """``(h, c)``, each ``(K, n_forward + n_backward, L)`` float32: +init forward rows, -init after."""
+        K, L, v = self.config.lstm_layers, self.config.latent, np.float32(self.config.init_state)
+        sign = np.concatenate([np.ones(n_forward, np.float32), -np.ones(n_backward, np.float32)])
+        s = np.ascontiguousarray(np.broadcast_to((v * sign)[None, :, None], (K, len(sign), L)))
+        return s, s.copy()
+
+    def encode(self, x: np.ndarray) -> np.ndarray:
+        """Frames ``(B, V, C)`` -> latent means ``mu`` ``(B, L)``."""
+        return self._encode(np.ascontiguousarray(np.asarray(x, dtype=np.float32).transpose(1, 0, 2)))
+
+    def decode(self, h: np.ndarray) -> np.ndarray:
+        """LSTM outputs ``(B, L)`` -> frame changes ``dX`` ``(B, V, C)``."""
+        return self._decode(np.asarray(h, dtype=np.float32)).transpose(1, 0, 2)
+
+    def step(self, state, x: np.ndarray, n_forward: int | None = None, sample: bool = False):
+        """G(s, X) -> ``(s', X + dX)`` for frames ``(B, V, C)`` float32 (``sample``: not here)."""
+        if sample:
+            raise MeshseqError("drawing the VAE latent (sampled predictions) needs the torch model")
+        state, nxt = self._step_vm(state, np.ascontiguousarray(x.transpose(1, 0, 2), dtype=np.float32), n_forward)
+        return state, nxt.transpose(1, 0, 2)
+
+    def rollout(self, first: np.ndarray, steps: int, state, n_forward: int | None = None):
+        """Free-running frames ``(B, steps + 1, V, C)`` from ``first`` ``(B, V, C)``; and the final state."""
+        x = np.ascontiguousarray(np.asarray(first, dtype=np.float32).transpose(1, 0, 2))
+        frames = np.empty((x.shape[1], steps + 1) + x.shape[::2], dtype=np.float32)
+        frames[:, 0] = first
+        for t in range(steps):  # the time loop is the only Python loop
+            state, x = self._step_vm(state, x, n_forward)
+            frames[:, t + 1] = x.transpose(1, 0, 2)
+        return frames, state
