@@ -352,7 +352,7 @@ def test_predict_and_complete_commands(trained, tmp_path, capsys):
     from meshseq.api import load
     api = complete_keyframes(load(run), seq.vertices[[10, 21]], [10], method="corrected",
                              before=seq.vertices[3:10], after=seq.vertices[22:29])[0]
-    np.testing.assert_allclose(got["7"], api, atol=1e-12)
+    np.testing.assert_allclose(got["7"], api, atol=1e-5)  # the command: numpy engine; the API: torch
     for method in ("cma", "linear"):
         o = tmp_path / f"{method}.npz"
         assert main(["complete", str(run), str(data), "--keyframes", "4,12", "--method", method,
