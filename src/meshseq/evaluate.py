@@ -22,8 +22,8 @@ from meshseq import baselines
 from meshseq.align import per_vertex_error
 from meshseq.errors import MeshseqError
 from meshseq.plots import feature_change as relative_change
-from meshseq.synthesize import (METHOD_JOINS, assemble_vertices, chain_states, complete_cma, context_fit,
-                                join_chain_states, join_chains, predict, run_chains, warm_chain_states)
+from meshseq.synthesize import (METHOD_JOINS, assemble_vertices, chain_states, complete_cma, join_chain_states,
+                                join_chains, predict, run_chains, run_context_chains)
 
 UNITS = 1e-4  # errors are reported in the data's units x 1e-4 (paper's tables)
 
@@ -221,8 +221,8 @@ def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int,
 def context_chains(model, feats: np.ndarray, starts: np.ndarray, gap: int, context: int):
     """``(forward, backward, trusted)`` of the gaps ``feats[s] .. feats[s + gap + 1]`` for the P
     ``starts``: the chains ``(P, gap + 2, V, C)`` warmed up on up to ``context`` frames of ``feats``
-    before key a and after key b (``warm_chain_states``), and ``(P,)`` whether the model predicts
-    those frames better than standing still and constant velocity (``context_fit`` < 1). Starts
+    before key a and after key b, and ``(P,)`` whether the model predicts those frames better than
+    standing still and constant velocity (``synthesize.run_context_chains``). Starts
     with as many frames around their keys run as one roll-out; with ``context=0``, the chains from
     the keys alone, none trusted."""
     n_before = np.minimum(context, starts)
@@ -235,9 +235,9 @@ def context_chains(model, feats: np.ndarray, starts: np.ndarray, gap: int, conte
         a, b = starts[rows], starts[rows] + gap + 1
         before = np.stack([feats[s - la:s] for s in a])
         after = np.stack([feats[s + 1:s + 1 + lb] for s in b])
-        state = warm_chain_states(model, model.engine.initial_state(len(rows), len(rows)), before, after)
-        forward[rows], backward[rows] = run_chains(model, feats[a], feats[b], gap, state)
-        trusted[rows] = context_fit(model, before, feats[a], after, feats[b]) < 1.0
+        state = model.engine.initial_state(len(rows), len(rows))
+        forward[rows], backward[rows], trusted[rows] = run_context_chains(model, feats[a], feats[b], gap, state,
+                                                                          before, after)
     return forward, backward, trusted
 
 

@@ -139,10 +139,8 @@ def uniform_states(shape: tuple[int, ...], seed: int | None, count: int = 2) -> 
     generator: for an int ``seed`` exactly what ``torch.rand(shape, generator=torch.Generator()
     .manual_seed(seed)) * 0.2 - 0.1`` gives for each (torch's CPU generator is MT19937 seeded as
     numpy's legacy seeding, and ``torch.rand`` keeps 24 bits of each 32-bit draw); None: unseeded."""
-    bits = np.random.MT19937()
-    if seed is None:
-        bits = np.random.MT19937(np.random.SeedSequence())
-    else:
+    bits = np.random.MT19937()  # (seeded from the OS)
+    if seed is not None:
         bits._legacy_seeding(int(seed) & 0xFFFFFFFF)
     n = int(np.prod(shape))
     raw = bits.random_raw(count * n) & np.uint64(2**24 - 1)
@@ -235,6 +233,19 @@ def _side_fit(path: np.ndarray, rolled: np.ndarray) -> np.ndarray:
     still = err(path[:, :1]).mean(1)
     constant = err(path[:, 1:2] + (path[:, 1:2] - path[:, :1]) * steps).mean(1)
     return err(rolled[:, 2:]).mean(1) / np.maximum(np.minimum(still, constant), 1e-12)
+
+
+def run_context_chains(model, keys_a, keys_b, n_between: int, state, before=None, after=None):
+    """``run_chains`` from ``state`` warmed up on the frames around the keys (``warm_chain_states``;
+    ``before`` / ``after`` ``(P, U, V, C)`` or None), and ``trusted`` ``(P,)``: whether the model
+    predicts those frames better than the trivial predictions (``context_fit`` < 1); None where no
+    frames are given. Returns ``(forward, backward, trusted)``."""
+    trusted = None
+    if before is not None or after is not None:
+        state = warm_chain_states(model, state, before, after)
+        trusted = context_fit(model, before, keys_a, after, keys_b) < 1.0
+    forward, backward = run_chains(model, keys_a, keys_b, n_between, state)
+    return forward, backward, trusted
 
 
 def run_chains(model, keys_a, keys_b, n_between: int, state) -> tuple[np.ndarray, np.ndarray]:
@@ -413,11 +424,7 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
     keys_a, keys_b = (np.broadcast_to(_frames(k)[None], (samples,) + np.shape(k)) for k in (key_a, key_b))
     ctx_a, ctx_b = (None if c is None else np.broadcast_to(_frames(c), (samples,) + np.shape(c))
                     for c in (before, after))
-    trusted = None
-    if ctx_a is not None or ctx_b is not None:
-        state = warm_chain_states(model, state, ctx_a, ctx_b)
-        trusted = context_fit(model, ctx_a, keys_a, ctx_b, keys_b) < 1.0
-    forward, backward = run_chains(model, keys_a, keys_b, n_between, state)
+    forward, backward, trusted = run_context_chains(model, keys_a, keys_b, n_between, state, ctx_a, ctx_b)
     frames, meets, gaps = join_chains(forward, backward, join, blend, trusted=trusted)
     frames[:, 0] = np.asarray(key_a)
     frames[:, -1] = np.asarray(key_b)
