@@ -126,6 +126,14 @@ def test_backends_predict_and_complete_alike(run):
         assert a.shape == b.shape and np.abs(a - b).max() < 1e-4 * scale
 
 
+def test_initial_state_of_a_given_value_on_both_backends(run):
+    from meshseq.api import load
+
+    for backend in ("torch", "numpy"):
+        h, c = load(run[0], backend=backend).initial_state(2, "backward", value=0.25)
+        assert tuple(h.shape) == (2, 2, 16) and (np.asarray(h) == 0.25).all() and (np.asarray(c) == 0.25).all()
+
+
 #: run in a fresh interpreter: predict and complete on CPU, then whether torch was imported
 PROBE = r"""
 import json, sys

@@ -170,9 +170,9 @@ class Model:
             h, c = self.net.initial_state(batch if fwd else 0, 0 if fwd else batch)
         else:
             h, c = self.net.initial_state(batch if fwd else 0, 0 if fwd else batch, self.device)
-        if value is not None:
-            h.fill_(value)
-            c.fill_(value)
+        if value is not None:  # (torch tensors or numpy arrays)
+            h[...] = value
+            c[...] = value
         return h, c
 
     def step(self, state, x, direction: str = "forward", sample: bool = False):
