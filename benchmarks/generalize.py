@@ -71,7 +71,10 @@ def score_block(model, vae, verts: np.ndarray, feats: np.ndarray, train_feats: n
            "motion_level": float(np.mean(step_levels(verts[lo:hi])) / max(train_level, 1e-12)),
            "prediction": {}, "completion": {}}
     for u in (1, 3):
-        res = prediction_errors(model, verts, feats, lo, hi, u, list(HORIZONS), list(PREDICTION), vae=vae)
+        horizons = [h for h in HORIZONS if len(prediction_starts(lo, hi, u, h))]  # a short block scores fewer
+        if not horizons:
+            continue
+        res = prediction_errors(model, verts, feats, lo, hi, u, horizons, list(PREDICTION), vae=vae)
         out["prediction"][f"u{u}"] = {m: {k: r[k] for k in ("centroid", "rigid")} for m, r in res.items()}
     gaps = [g for g in GAPS if hi - lo >= g + 2]
     out["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1)
@@ -176,8 +179,11 @@ def train_vae_baseline(model, train_feats: np.ndarray):
 
 
 def prediction_ratio(block: dict, u: str, h: str, key: str = "centroid") -> float:
-    """Ours over the best baseline at one cell of a scored block."""
-    p = block["prediction"][u]
+    """Ours over the best baseline at one cell of a scored block (NaN where the block is too short
+    for the horizon)."""
+    p = block["prediction"].get(u)
+    if p is None or h not in p["ours"][key]:
+        return float("nan")
     return p["ours"][key][h] / min(p[m][key][h] for m in PREDICTION[1:] if m in p)
 
 
@@ -189,23 +195,28 @@ def completion_ratio(block: dict, gap: str) -> float:
 
 def line(tag: str, b: dict) -> str:
     cells = " ".join(f"{u}h{h}{'r' if key == 'rigid' else ''} {prediction_ratio(b, u, h, key):.2f}"
-                     for u in ("u1", "u3") for h in ("10", "15") for key in ("centroid", "rigid"))
+                     for u in ("u1", "u3") for h in ("5", "10", "15") for key in ("centroid", "rigid"))
     comp = " ".join(f"g{g} {completion_ratio(b, g):.2f}" for g in b["completion"])
     return (f"{tag} {Path(b['sequence']).name}: novelty {b['novelty']:.1f} motion {b['motion_level']:.2f} | "
             f"ours/best {cells} | ours/interp {comp} | motion50 {b['motion_50']:.2f}")
 
 
+def ratio_cell(r: float) -> str:
+    """A table cell: the ratio, or "-" where the block could not be scored."""
+    return "-" if np.isnan(r) else f"{r:.2f}"
+
+
 def table(files: list[str]) -> str:
     """Markdown: one row per block, ratios against the best baseline (prediction, h10/h15,
     u1/u3, raw and rigid), against the better interpolation (completion), motion level."""
-    rows = ["| set, block, iterations | sequence | novelty | motion | u1 h10 | u1 h15 | u3 h10 | u3 h15 | rigid u3 h15 | "
-            "gap 5 | gap 10 | gap 20 | gap 30 | motion of 50 |", "|" + "---|" * 14]
-    cells = [("u1", "10", "centroid"), ("u1", "15", "centroid"), ("u3", "10", "centroid"), ("u3", "15", "centroid"),
-             ("u3", "15", "rigid")]
+    rows = ["| set, block, iterations | sequence | novelty | motion | u1 h5 | u1 h10 | u1 h15 | u3 h5 | u3 h10 | "
+            "u3 h15 | rigid u3 h15 | gap 5 | gap 10 | gap 20 | gap 30 | motion of 50 |", "|" + "---|" * 16]
+    cells = [("u1", "5", "centroid"), ("u1", "10", "centroid"), ("u1", "15", "centroid"), ("u3", "5", "centroid"),
+             ("u3", "10", "centroid"), ("u3", "15", "centroid"), ("u3", "15", "rigid")]
     for f in files:
         rec = json.loads(Path(f).read_text())
         for b in rec["blocks"]:
-            pred = [f"{prediction_ratio(b, *cell):.2f}" for cell in cells]
+            pred = [ratio_cell(prediction_ratio(b, *cell)) for cell in cells]
             comp = [f"{completion_ratio(b, g):.2f}" if g in b["completion"] else "-" for g in ("5", "10", "20", "30")]
             block = "unseen sequence" if rec["train"]["holdout"] == 0 else f"@ {rec['holdout_at']}"
             rows.append(f"| {rec['set']} {block}, {rec['iteration']} it | {Path(b['sequence']).name} | "
