@@ -13,32 +13,40 @@ and for 1 and 8 samples, prints:
   mesh measured in the same run (benchmarks/acap_speed.py's reconstruct figure);
 - the whole completion of a 30-frame gap through the Python API (``Model.complete``), warm.
 
+Each figure for both inference backends: ``numpy`` (``meshseq.numpy_net``: what ``meshseq predict``
+and ``complete`` run on CPU, and ``meshseq.load(run, backend="numpy")``) and ``torch`` (the
+``BDLSTM`` module, ``meshseq.load(run)``'s default). The targets are judged on the numpy backend.
+
 Targets (2 cores): step within 2x its floor at 1 sample; at 8 samples within 1.5x of the 1-sample
 time per step; 30-frame gap, 8 samples, 10k vertices: at most 2 s through the API.
 
 ``--command RUN DATA`` also times ``meshseq complete RUN DATA --keyframes 0,31 --samples 8`` as a
 command (start-up and loading included; target 4 s on crane).
 
-    python benchmarks/synthesis_speed.py [--repeat 5] [--threads N] [--command /tmp/crane_run crane.npz]
+    python benchmarks/synthesis_speed.py [--repeat 5] [--backends numpy,torch] [--command RUN crane.npz]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads, as the commands run (device.inference_setup)
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 from meshseq.acap import Scaling, extract
 from meshseq.api import Model
 from meshseq.data.synthetic import twisting_limb
 from meshseq.mesh import Topology
 from meshseq.model import BDLSTM, ModelConfig
+from meshseq.model_config import tensor_shapes
+from meshseq.numpy_net import NumpyNet, ring_matrix
 from meshseq import synthesize
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -60,8 +68,9 @@ def machine_rates(repeat: int) -> tuple[float, float]:
     return gflops, 2 * x.nbytes / t / 1e9
 
 
-def random_model(rings: int, segments: int) -> tuple[Model, np.ndarray]:
-    """A paper-sized model with random weights on a twisting limb, and the limb's vertices (T, V, 3)."""
+def random_model(rings: int, segments: int) -> tuple[dict[str, Model], np.ndarray]:
+    """A paper-sized model with random weights on a twisting limb as ``{backend: Model}`` (the same
+    weights), and the limb's vertices (T, V, 3)."""
     seq = twisting_limb(frames=40, rings=rings, segments=segments)
     topo = Topology.from_faces(seq.faces, seq.n_vertices)
     torch.manual_seed(0)
@@ -71,28 +80,28 @@ def random_model(rings: int, segments: int) -> tuple[Model, np.ndarray]:
     feats = extract(seq.vertices, seq.faces)
     scaling = Scaling.fit(feats)
     net.set_input_norm(scaling.apply(feats))
-    return Model(net, {"scaling": scaling.to_dict()}, seq.vertices[0], seq.faces, "cpu"), seq.vertices
+    meta = {"scaling": scaling.to_dict()}
+    numpy_net = NumpyNet(config, {k: v.numpy() for k, v in net.state_dict().items()}, ring_matrix(topo))
+    return {"numpy": Model(numpy_net, meta, seq.vertices[0], seq.faces, "cpu"),
+            "torch": Model(net, meta, seq.vertices[0], seq.faces, "cpu")}, seq.vertices
 
 
-def step_bytes(model: Model) -> int:
-    """Bytes of the weights one step reads: the big FC twice (encoder, tied decoder), the rest once."""
-    fc = model.net.fc.weight
-    rest = sum(p.numel() * p.element_size() for n, p in model.net.named_parameters() if n != "fc.weight")
-    return 2 * fc.numel() * fc.element_size() + rest
+def step_bytes(config: ModelConfig) -> int:
+    """Bytes of the weights one step reads: the big FC twice (encoder, tied decoder), the rest once
+    (the input normalisation and the unused log-variance head left out)."""
+    shapes = tensor_shapes(config)
+    skip = ("fc_logvar.weight", "fc_logvar.bias", "input_offset", "input_spread")
+    return 4 * (sum(int(np.prod(s)) for n, s in shapes.items() if n not in skip) + int(np.prod(shapes["fc.weight"])))
 
 
 def time_steps(model: Model, keys: np.ndarray, samples: int, repeat: int) -> float:
-    """Seconds per roll-out step of a completion's chains (K forward + K backward rows)."""
-    a, b = (torch.as_tensor(k, dtype=torch.float32) for k in keys)
-    first = torch.cat([a[None].expand(samples, -1, -1), b[None].expand(samples, -1, -1)])
-    state = model.net.initial_state(samples, samples)
+    """Seconds per roll-out step of a completion's chains (K forward + K backward rows), through
+    ``model.engine`` (either backend)."""
+    a, b = (np.asarray(k, dtype=np.float32) for k in keys)
+    first = np.concatenate([np.repeat(a[None], samples, 0), np.repeat(b[None], samples, 0)])
+    state = model.engine.initial_state(samples, samples)
     steps = GAP + 1
-
-    def run():
-        with torch.no_grad():
-            return model.net.rollout(first, steps, state, n_forward=samples)
-
-    t, _ = best_of(repeat, run)
+    t, _ = best_of(repeat, lambda: model.engine.rollout(first, steps, state, n_forward=samples))
     return t / steps
 
 
@@ -117,10 +126,37 @@ def time_command(run: str, data: str, repeat: int) -> float:
     return min(times)
 
 
+def time_backend(name: str, backend: str, model: Model, verts: np.ndarray, feats: np.ndarray, keys: np.ndarray,
+                 floor: float, solve_frame: float, repeat: int) -> list[tuple[str, float, float]]:
+    """Print one backend's figures at 1 and 8 samples; return its targets ``(what, value, limit)``
+    (numpy's only)."""
+    targets, one_step = [], None
+    for samples in (1, 8):
+        step = time_steps(model, keys, samples, repeat)
+        one_step = one_step or step
+        rec_frame = time_reconstruction(model, feats, verts, samples, repeat) / (samples * (GAP + 2))
+        t_api, _ = best_of(max(2, repeat // 2), lambda: model.complete(verts[[0, GAP + 1]], GAP, samples=samples,
+                                                                      seed=0))
+        print(f"  {backend:5s} K={samples}: step {step * 1e3:6.2f} ms ({step / floor:4.2f}x floor, "
+              f"{step / one_step:4.2f}x K=1), {step / samples * 1e3:5.2f} ms per generated frame | "
+              f"reconstruction {rec_frame * 1e3:5.2f} ms per generated frame ({rec_frame / solve_frame:4.2f}x solve) | "
+              f"API complete {GAP}-frame gap {t_api:5.2f} s")
+        if backend != "numpy":
+            continue
+        if samples == 1:
+            targets.append((f"{name}: step at K=1 within 2x its floor", step / floor, 2.0))
+        else:
+            targets.append((f"{name}: step at K=8 within 1.5x of K=1", step / one_step, 1.5))
+            if name == "10k":
+                targets.append((f"{name}: API completion of a {GAP}-frame gap, 8 samples, s", t_api, 2.0))
+    return targets
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--meshes", default=",".join(MESHES), help="which of 3k,10k")
+    ap.add_argument("--backends", default="numpy,torch", help="which of numpy,torch (targets: numpy's)")
     ap.add_argument("--command", nargs=2, metavar=("RUN", "DATA"), default=None,
                     help="also time `meshseq complete RUN DATA --samples 8` of a 30-frame gap")
     ap.add_argument("--threads", type=int, default=None,
@@ -133,33 +169,21 @@ def main() -> None:
     print(f"machine: float32 matmul {gflops:.1f} GFLOP/s, copy {gbs:.1f} GB/s (read + write); "
           f"torch threads {torch.get_num_threads()}")
     targets = []
+    backends = args.backends.split(",")
     for name in args.meshes.split(","):
-        model, verts = random_model(*MESHES[name])
-        V = model.config.n_vertices
-        feats = model.features(verts)
+        models, verts = random_model(*MESHES[name])
+        first = models[backends[0]]
+        V = first.config.n_vertices
+        feats = first.features(verts)
         keys = feats[[0, GAP + 1]]
-        floor = step_bytes(model) / (gbs * 1e9)
-        t_solve, _ = best_of(args.repeat, lambda: model.vertices(feats))
+        floor = step_bytes(first.config) / (gbs * 1e9)
+        t_solve, _ = best_of(args.repeat, lambda: first.vertices(feats))
         solve_frame = t_solve / len(feats)
-        print(f"{name} ({V} vertices): step weights {step_bytes(model) / 1e6:.1f} MB -> floor {floor * 1e3:.2f} ms; "
-              f"Reconstructor.solve {solve_frame * 1e3:.2f} ms/frame ({len(feats)} frames, acap_speed's figure)")
-        one_step = None
-        for samples in (1, 8):
-            step = time_steps(model, keys, samples, args.repeat)
-            one_step = one_step or step
-            rec_frame = time_reconstruction(model, feats, verts, samples, args.repeat) / (samples * (GAP + 2))
-            t_api, _ = best_of(max(2, args.repeat // 2),
-                               lambda: model.complete(verts[[0, GAP + 1]], GAP, samples=samples, seed=0))
-            print(f"  K={samples}: step {step * 1e3:6.2f} ms ({step / floor:4.2f}x floor, "
-                  f"{step / one_step:4.2f}x K=1), {step / samples * 1e3:5.2f} ms per generated frame | "
-                  f"reconstruction {rec_frame * 1e3:5.2f} ms per generated frame ({rec_frame / solve_frame:4.2f}x solve) | "
-                  f"API complete {GAP}-frame gap {t_api:5.2f} s")
-            if samples == 1:
-                targets.append((f"{name}: step at K=1 within 2x its floor", step / floor, 2.0))
-            else:
-                targets.append((f"{name}: step at K=8 within 1.5x of K=1", step / one_step, 1.5))
-                if name == "10k":
-                    targets.append((f"{name}: API completion of a {GAP}-frame gap, 8 samples, s", t_api, 2.0))
+        print(f"{name} ({V} vertices): step weights {step_bytes(first.config) / 1e6:.1f} MB -> floor "
+              f"{floor * 1e3:.2f} ms; Reconstructor.solve {solve_frame * 1e3:.2f} ms/frame ({len(feats)} frames, "
+              f"acap_speed's figure)")
+        for backend in backends:
+            targets += time_backend(name, backend, models[backend], verts, feats, keys, floor, solve_frame, args.repeat)
     if args.command:
         t = time_command(*args.command, max(1, args.repeat // 2))
         print(f"command: meshseq complete {args.command[0]} {args.command[1]} --samples 8, {GAP}-frame gap: {t:.2f} s")
