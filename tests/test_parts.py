@@ -152,3 +152,35 @@ def test_a_part_collapsed_to_a_point_in_the_reference_is_refused_in_one_line(tmp
         errors = [line for line in capsys.readouterr().err.splitlines() if "warning" not in line]
         assert len(errors) == 1 and "frame 0: part 3" in errors[0] and "one point" in errors[0], errors
     assert not (tmp_path / "run").exists()
+
+
+def _strip(n: int, offset: int) -> np.ndarray:
+    """Faces of a 2 x n strip of vertices numbered from ``offset``."""
+    i = np.arange(n - 1)
+    a, b, c, d = offset + 2 * i, offset + 2 * i + 1, offset + 2 * i + 2, offset + 2 * i + 3
+    return np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1)])
+
+
+def test_a_part_whose_lowest_vertex_is_an_outlier_keeps_its_logs_off_the_2pi_shell(monkeypatch):
+    """A band turning by 0.05 rad whose first vertex (an ill-conditioned end) is turned 2.6 rad:
+    rooted there, the BFS put most of the band's logs near 2 pi; rooted at a typical vertex, every
+    log stays within pi, and the other part (typical root) keeps its tree."""
+    from meshseq.acap.rotations import spatial_bfs, typical_roots
+
+    faces = np.concatenate([_strip(20, 0), _strip(20, 40)])
+    topo = Topology.from_faces(faces, 80)
+    axis = np.tile([0.0, 0.0, 1.0], (1, 80, 1))
+    theta = np.full((1, 80), 0.05)
+    axis[0, 40] *= -1  # the second part's lowest vertex: turned 2.6 rad the other way,
+    theta[0, 40] = 2.6
+    theta[0, [41, 42]] = 1.3  # its neighbours half way
+    roots = typical_roots(theta[0], topo)
+    assert roots[0] == topo.component_roots[0] and roots[1] != 40
+    logs = np.linalg.norm(spatial_bfs(axis, theta, topo)[0], axis=-1)
+    assert (logs[:40] <= np.pi).all() and (logs[41:] <= np.pi).all()
+    from meshseq.acap import rotations
+
+    monkeypatch.setattr(rotations, "typical_roots", lambda theta, topology: topology.component_roots)
+    lowest = np.linalg.norm(spatial_bfs(axis, theta, topo)[0], axis=-1)
+    assert (lowest[41:] > np.pi).mean() > 0.9  # what the lowest root did: the band on the 2 pi shell
+    assert np.array_equal(lowest[:40], logs[:40])

@@ -149,7 +149,11 @@ class Topology:
 
     @cached_property
     def bfs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Breadth-first trees over the 1-ring graph, one per component, rooted at its lowest vertex.
+        """``bfs_trees`` rooted at each component's lowest vertex."""
+        return self.bfs_trees(self.component_roots)
+
+    def bfs_trees(self, roots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Breadth-first trees over the 1-ring graph from ``roots`` ``(C,)``, one vertex per component.
 
         Returns:
             order: ``(V,)`` vertices in BFS order (component by component).
@@ -158,7 +162,7 @@ class Topology:
         """
         order_parts = []
         parent = np.full(self.n_vertices, -1, dtype=np.int64)
-        for root in self.component_roots:
+        for root in roots:
             order, pred = csgraph.breadth_first_order(self.adjacency, int(root), directed=False)
             order_parts.append(order)
             parent[order[1:]] = pred[order[1:]]
@@ -172,10 +176,7 @@ class Topology:
     @cached_property
     def bfs_levels(self) -> list[np.ndarray]:
         """Vertices grouped by BFS depth: ``levels[d]`` holds every vertex at depth d (roots at 0)."""
-        _, _, depth = self.bfs
-        order = np.argsort(depth, kind="stable")
-        bounds = np.searchsorted(depth[order], np.arange(depth.max() + 2))
-        return [order[bounds[d]:bounds[d + 1]] for d in range(len(bounds) - 1)]
+        return depth_levels(self.bfs[2])
 
     @cached_property
     def ring_mean_operator(self) -> sp.csr_matrix:
@@ -282,3 +283,10 @@ def topology_hash(faces: np.ndarray, n_vertices: int) -> str:
     h.update(np.int64(n_vertices).tobytes())
     h.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
     return h.hexdigest()[:16]
+
+
+def depth_levels(depth: np.ndarray) -> list[np.ndarray]:
+    """Vertices grouped by tree depth ``(V,)``: ``levels[d]`` holds every vertex at depth d."""
+    order = np.argsort(depth, kind="stable")
+    bounds = np.searchsorted(depth[order], np.arange(depth.max() + 2))
+    return [order[bounds[d]:bounds[d + 1]] for d in range(len(bounds) - 1)]

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshseq.mesh import Topology
+from meshseq.mesh import Topology, depth_levels
 
 #: Rotation angles at or below this count as "no rotation" (method.md 1.4).
 NO_ROTATION = 1e-6
@@ -68,6 +68,31 @@ def axis_angle(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return axis, theta
 
 
+#: A part's lowest vertex roots its BFS unless its angle is this far from the part's median angle.
+ATYPICAL_ROOT = 0.25 * np.pi
+
+
+def typical_roots(theta: np.ndarray, topology: Topology) -> np.ndarray:
+    """The BFS root of each part ``(C,)`` for one frame's angles ``theta (V,)``: its lowest vertex,
+    or, where that vertex's angle is atypical for its part (further than :data:`ATYPICAL_ROOT` from
+    the part's median), the vertex nearest the median.
+
+    The BFS makes every log of a part consistent with its root's principal value. A root whose
+    rotation is an outlier (an ill-conditioned end vertex of a thin band, turned 2.6 rad where its
+    part turns by 0.06) puts its part on the 2 pi shell: near-identity rotations stored as logs of
+    norm near 2 pi, where a small change of rotation takes a log step of radians. Parts whose
+    lowest vertex is typical (every mesh this rule was checked on) keep today's tree and logs.
+    """
+    roots = topology.component_roots.copy()
+    labels = topology.component_labels
+    for part, root in enumerate(roots):  # a loop over parts (tens), not vertices
+        angles = theta[labels == part]
+        median = np.median(angles)
+        if abs(theta[root] - median) > ATYPICAL_ROOT:
+            roots[part] = np.flatnonzero(labels == part)[np.argmin(np.abs(angles - median))]
+    return roots
+
+
 def spatial_bfs(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndarray:
     """Consistent rotation logs by the reference code's greedy BFS (method.md 1.5).
 
@@ -81,8 +106,13 @@ def spatial_bfs(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.n
     w = np.ascontiguousarray(axis.transpose(1, 0, 2)).copy()  # (V, T, 3) vertex-major
     th = np.ascontiguousarray(theta.T).copy()  # (V, T)
     k = np.zeros(th.shape, dtype=np.int64)
-    _, parent, _ = topology.bfs
-    for level in topology.bfs_levels[1:]:
+    roots = typical_roots(theta[0], topology)
+    if np.array_equal(roots, topology.component_roots):
+        parent, levels = topology.bfs[1], topology.bfs_levels
+    else:
+        _, parent, depth = topology.bfs_trees(roots)
+        levels = depth_levels(depth)
+    for level in levels[1:]:
         par = parent[level]
         wj, wi, tj, ti, ki = w[level], w[par], th[level], th[par], k[par]
         small = tj <= NO_ROTATION
