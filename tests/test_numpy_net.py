@@ -153,3 +153,15 @@ def test_predict_and_complete_on_cpu_import_no_torch(run, tmp_path):
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report == {"codes": [0, 0], "torch": False}, proc.stderr
     assert (tmp_path / "p.npz").is_file() and (tmp_path / "c" / "diversity.json").is_file()
+
+
+def test_sampling_on_the_numpy_backend_is_one_line_naming_the_torch_model(run):
+    from meshseq.api import load
+    from meshseq.errors import MeshseqError
+    from meshseq.io import load_sequence
+
+    model = load(run[0], backend="numpy")
+    frames = load_sequence(run[1]).vertices[3:6]
+    for call in (lambda: model.sample(frames, 4), lambda: model.rollout(model.features(frames), 3, sample=True)):
+        with pytest.raises(MeshseqError, match="needs the torch model"):
+            call()

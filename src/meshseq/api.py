@@ -194,12 +194,17 @@ class Model:
         nxt = nxt[0] if single else nxt
         return state, _back(nxt, as_np)
 
+    def _check_sampling(self, sample: bool) -> None:
+        """One line where sampling is asked of the numpy backend (it has no VAE sampling)."""
+        if sample and self.backend == "numpy":
+            raise MeshseqError("drawing the VAE latent (sampled predictions) needs the torch model: "
+                               "load it with meshseq.load(run) (backend torch)")
+
     def rollout(self, first, steps: int, direction: str = "forward", state=None, sample: bool = False):
         """Free-running frames ``(B, steps + 1, V, 9)`` from ``first`` ``(B, V, 9)``."""
         if self.backend == "numpy":
+            self._check_sampling(sample)
             f = np.asarray(first, dtype=np.float32)
-            if sample:
-                self.net.step(None, f, sample=True)  # (the one-line error)
             state = self.initial_state(len(f), direction) if state is None else state
             return self.net.rollout(f, int(steps), state, len(f) if direction == "forward" else 0)[0]
         import torch
@@ -246,6 +251,7 @@ class Model:
         """
         from meshseq import synthesize
 
+        self._check_sampling(True)
         f = np.asarray(frames, dtype=np.float64)
         if f.ndim != 3 or f.shape[-1] != 3 or f.shape[1] != self.config.n_vertices:
             raise MeshseqError(f"frames must be (U, {self.config.n_vertices}, 3) vertices, got shape {f.shape}")
