@@ -388,7 +388,8 @@ def generalization_section(files: list[Path]) -> list[str]:
             "the training part's. Prediction: ours over the best of zero velocity, linear ACAP extrapolation and "
             "the VAE latent (centroid-aligned; rigid: also rotation-aligned). Completion: ours over the better "
             "linear interpolation (ACAP features or vertices) between keys that far apart. Motion of 50: the "
-            "feature change of 50 generated frames over the truth's.", "",
+            "feature change of 50 generated frames over the truth's. -: the block is shorter than the horizon or gap "
+            "needs (horse-gallop's held-out end is its last 10 frames).", "",
             *generalize.table([str(f) for f in files]).splitlines(), ""]
 
 

@@ -105,19 +105,6 @@ def time_steps(model: Model, keys: np.ndarray, samples: int, repeat: int) -> flo
     return t / steps
 
 
-def time_weight_matmuls(config: ModelConfig, samples: int, repeat: int) -> float:
-    """Seconds of a step's two big FC products alone, as plain matmuls of the same shapes on the
-    same BLAS (encoder ``W x^T``, tied decoder ``h W``, for 2K rows): the part of a step that
-    reads the weights; the rest of the step is work on the K chains' activations (mesh
-    convolutions, the LSTM, copies)."""
-    L, N = config.latent, config.n_vertices * config.channels
-    w = np.random.default_rng(0).random((L, N), dtype=np.float32)
-    x = np.ones((2 * samples, N), np.float32)
-    h = np.ones((2 * samples, L), np.float32)
-    t, _ = best_of(repeat, lambda: (w @ x.T, h @ w))
-    return t
-
-
 def time_reconstruction(model: Model, feats: np.ndarray, verts: np.ndarray, samples: int, repeat: int) -> float:
     """Seconds to turn ``samples`` completions (GAP + 2 frames each) into vertices through the keys."""
     n = GAP + 2
@@ -154,12 +141,9 @@ def time_backend(name: str, backend: str, model: Model, verts: np.ndarray, feats
               f"{step / one_step:4.2f}x K=1), {step / samples * 1e3:5.2f} ms per generated frame | "
               f"reconstruction {rec_frame * 1e3:5.2f} ms per generated frame ({rec_frame / solve_frame:4.2f}x solve) | "
               f"API complete {GAP}-frame gap {t_api:5.2f} s")
-        if backend == "numpy":  # where the time goes, measured in the same run
-            fc = time_weight_matmuls(model.config, samples, repeat)
-            print(f"        of the step: the two FC products alone {fc * 1e3:5.2f} ms (weights), the rest "
-                  f"{(step - fc) * 1e3:5.2f} ms (activations); of the API completion: roll-out "
-                  f"{step * (GAP + 1):4.2f} s, reconstruction {rec_frame * samples * (GAP + 2):4.2f} s, other "
-                  f"{t_api - step * (GAP + 1) - rec_frame * samples * (GAP + 2):4.2f} s")
+        print(f"        of the API completion: roll-out {step * (GAP + 1):4.2f} s, reconstruction "
+              f"{rec_frame * samples * (GAP + 2):4.2f} s, other "
+              f"{t_api - step * (GAP + 1) - rec_frame * samples * (GAP + 2):4.2f} s")
         if backend != "numpy":
             continue
         if samples == 1:
