@@ -167,11 +167,7 @@ class Topology:
             order_parts.append(order)
             parent[order[1:]] = pred[order[1:]]
         order = np.concatenate(order_parts) if order_parts else np.zeros(0, dtype=np.int64)
-        depth = np.zeros(self.n_vertices, dtype=np.int64)
-        for v in order:  # one pass over an int array at set-up; O(V), not in any per-frame path
-            if parent[v] >= 0:
-                depth[v] = depth[parent[v]] + 1
-        return order, parent, depth
+        return order, parent, tree_depths(parent)
 
     @cached_property
     def bfs_levels(self) -> list[np.ndarray]:
@@ -290,3 +286,18 @@ def depth_levels(depth: np.ndarray) -> list[np.ndarray]:
     order = np.argsort(depth, kind="stable")
     bounds = np.searchsorted(depth[order], np.arange(depth.max() + 2))
     return [order[bounds[d]:bounds[d + 1]] for d in range(len(bounds) - 1)]
+
+
+def tree_depths(parent: np.ndarray) -> np.ndarray:
+    """Hops from each vertex to its tree's root ``(V,)`` for ``parent`` ``(V,)`` (-1 at roots), by
+    pointer jumping: each pass adds the distance to the current ancestor and jumps to that
+    ancestor's, so the loop runs log2 of the deepest path times, vectorised over vertices."""
+    has_parent = parent >= 0
+    depth = has_parent.astype(np.int64)
+    jump = np.where(has_parent, parent, np.arange(len(parent)))  # roots point at themselves
+    while True:
+        nxt = jump[jump]
+        if np.array_equal(nxt, jump):
+            return depth
+        depth = depth + depth[jump]
+        jump = nxt

@@ -83,14 +83,26 @@ def typical_roots(theta: np.ndarray, topology: Topology) -> np.ndarray:
     norm near 2 pi, where a small change of rotation takes a log step of radians. Parts whose
     lowest vertex is typical (every mesh this rule was checked on) keep today's tree and logs.
     """
-    roots = topology.component_roots.copy()
     labels = topology.component_labels
-    for part, root in enumerate(roots):  # a loop over parts (tens), not vertices
-        angles = theta[labels == part]
-        median = np.median(angles)
-        if abs(theta[root] - median) > ATYPICAL_ROOT:
-            roots[part] = np.flatnonzero(labels == part)[np.argmin(np.abs(angles - median))]
+    roots = topology.component_roots.copy()
+    median = part_medians(theta, labels, len(roots))
+    spread = np.abs(theta - median[labels])
+    atypical = spread[roots] > ATYPICAL_ROOT
+    if atypical.any():
+        by_spread = np.lexsort((spread, labels))  # per part, nearest the median first (ties: lowest vertex)
+        first = np.searchsorted(labels[by_spread], np.arange(len(roots)))
+        roots[atypical] = by_spread[first[atypical]]
     return roots
+
+
+def part_medians(values: np.ndarray, labels: np.ndarray, n_parts: int) -> np.ndarray:
+    """The median of ``values (V,)`` over each part ``(C,)`` (the mean of the two middle ones for an
+    even count, as ``np.median``), by one sort rather than a pass per part."""
+    order = np.lexsort((values, labels))
+    counts = np.bincount(labels, minlength=n_parts)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    v = values[order]
+    return 0.5 * (v[start + (counts - 1) // 2] + v[start + counts // 2])
 
 
 def spatial_bfs(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndarray:
