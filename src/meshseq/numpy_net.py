@@ -147,8 +147,7 @@ class NumpyNet:
             np.matmul(weight[a:b], xt, out=out[a:b])
 
         self._map(rows)
-        out = out.T
-        return out + self.fc_bias
+        return out.T + self.fc_bias
 
     def _map(self, work) -> None:
         """``work(part)`` for every block (``_split_ring``), on the pool when there is one."""
