@@ -7,7 +7,10 @@ prediction from 3 given frames on the held-out subject's seen motions against ze
     python benchmarks/parts_placement.py bodies1k.h5 --placement off --iterations 600 --out runs/pp-onepart
 
 Prints per sequence the mean per-vertex error x 1e-4 (centroids removed) at horizons 5/10/15, ours
-and zero velocity, over starts every 4 frames; writes OUT.json.
+and zero velocity, over starts every 4 frames; with placement channels also ours with the truth's
+placement channels swapped into its predicted features (how much of ours' error the parts' placement
+explains); writes OUT.json. ``--validation-subject S`` also holds out subject S's sequences and scores
+them first: choose between recipes on S, then confirm on the held-out subject.
 """
 
 from __future__ import annotations
@@ -33,13 +36,22 @@ def centred_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 
 def score(model, vertices: np.ndarray, step: int = 4) -> dict:
-    """Ours and zero velocity from 3 given frames, mean over starts, at ``HORIZONS`` (x 1e-4)."""
+    """Ours and zero velocity from 3 given frames, mean over starts, at ``HORIZONS`` (x 1e-4); on a
+    model with placement channels also ``ours_true_placement``: ours' predicted features with the
+    truth's placement channels, reconstructed."""
     h = max(HORIZONS)
-    rows = {"ours": [], "zero_velocity": []}
+    placement = model.config.channels > 9
+    feats = model.features(vertices) if placement else None
+    rows = {"ours": [], "zero_velocity": []} | ({"ours_true_placement": []} if placement else {})
     for s in range(0, len(vertices) - h - 3, step):
         truth = vertices[s + 3:s + 3 + h]
-        rows["ours"].append(centred_errors(model.predict(vertices[s:s + 3], h)[3:], truth))
+        pred = model.predict(vertices[s:s + 3], h)[3:]
+        rows["ours"].append(centred_errors(pred, truth))
         rows["zero_velocity"].append(centred_errors(np.repeat(vertices[s + 2][None], h, 0), truth))
+        if placement:
+            f = model.features(pred)
+            f[..., 9:12] = feats[s + 3:s + 3 + h, :, 9:12]
+            rows["ours_true_placement"].append(centred_errors(model.vertices(f), truth))
     return {m: [float(np.mean(r, 0)[k - 1] * 1e4) for k in HORIZONS] for m, r in rows.items()}
 
 
@@ -51,6 +63,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--hold-subject", default="male_slim")
     p.add_argument("--hold-motion", default="shake_arms")
+    p.add_argument("--validation-subject", default=None, help="also hold out this subject; scored first")
     p.add_argument("--out", required=True)
     args = p.parse_args()
 
@@ -60,6 +73,11 @@ def main() -> None:
     from meshseq.train import TrainConfig, TrainingData, train
 
     specs, held = body_specs(args.bodies, args.hold_subject, args.hold_motion)
+    if args.validation_subject:
+        val = [s for s in specs if s.rsplit(":", 1)[-1].startswith(args.validation_subject + "_")]
+        if not val:
+            sys.exit(f"parts_placement: --validation-subject {args.validation_subject}: no such subject in {args.bodies}")
+        specs, held = [s for s in specs if s not in val], val + held
     seqs = [load_sequence(s) for s in specs]
     ref = seqs[0].vertices[0]
     feats = [acap.extract(s.vertices, s.faces, reference=ref, placement=args.placement == "on") for s in seqs]
@@ -72,9 +90,9 @@ def main() -> None:
         if spec.endswith("_" + args.hold_motion):
             continue  # the unseen motion: this run is about the seen ones
         results[spec] = score(model, load_sequence(spec).vertices)
-        r = results[spec]
-        print(f"{spec}: ours {' '.join(f'{e:.1f}' for e in r['ours'])} | zero velocity "
-              f"{' '.join(f'{e:.1f}' for e in r['zero_velocity'])} (h{'/'.join(map(str, HORIZONS))})", flush=True)
+        print(f"{spec}: " + " | ".join(f"{m.replace('_', ' ')} {' '.join(f'{e:.1f}' for e in r)}"
+                                       for m, r in results[spec].items())
+              + f" (h{'/'.join(map(str, HORIZONS))})", flush=True)
     Path(args.out + ".json").write_text(json.dumps({"args": vars(args), "results": results}, indent=1))
 
 
