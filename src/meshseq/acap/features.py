@@ -160,9 +160,10 @@ def features_to_gradients(features):
     entry (several times faster than batched 3x3 products). Takes numpy arrays or torch tensors
     (differentiable, finite gradients at ``t = 0``) and returns the same kind.
     """
-    if not (isinstance(features, np.ndarray) or not hasattr(features, "dim")):
-        # torch: of a channel-first contiguous copy, so that the ~60 elementwise operations run on
-        # contiguous planes (on strided channel views each took 5-10x longer: L_vertex's reconstruction)
+    if hasattr(features, "dim") and not isinstance(features, np.ndarray):
+        # torch: one unbind, not nine slices (under autograd each slice's backward fills a zero tensor
+        # of the input's size), of a channel-first contiguous copy, so that the ~60 elementwise
+        # operations run on contiguous planes (on strided channel views each took 5-10x longer)
         import torch
 
         return _gradients_of_channels(features.movedim(-1, 0).contiguous().unbind(0), torch)
@@ -176,8 +177,7 @@ def features_to_gradients(features):
 
 def _gradients_of_channels(cols, xp):
     """``features_to_gradients`` of the nine channel planes ``cols`` (each ``(...)``), ``xp`` numpy
-    or torch. One unbind, not nine slices: under autograd each slice's backward fills a zero tensor
-    of the input's size."""
+    or torch."""
     a, b, c = cols[:3]
     aa, bb, cc = a * a, b * b, c * c
     t2 = aa + bb + cc
