@@ -64,6 +64,7 @@ def main() -> None:
     p.add_argument("--hold-subject", default="male_slim")
     p.add_argument("--hold-motion", default="shake_arms")
     p.add_argument("--validation-subject", default=None, help="also hold out this subject; scored first")
+    p.add_argument("--placement-jitter", type=float, default=0.0, help="TrainConfig.placement_jitter")
     p.add_argument("--out", required=True)
     args = p.parse_args()
 
@@ -83,6 +84,7 @@ def main() -> None:
     feats = [acap.extract(s.vertices, s.faces, reference=ref, placement=args.placement == "on") for s in seqs]
     data = TrainingData([s.name for s in seqs], specs, feats, seqs[0].faces, ref, "temporal")
     train(data, args.out, TrainConfig(iterations=args.iterations, seed=args.seed, holdout=0.0, eval_every=0,
+                                      placement_jitter=args.placement_jitter,
                                       checkpoint_every=args.iterations), device="cpu", progress=False)
     model = meshseq.load(args.out)
     results = {}

@@ -57,7 +57,8 @@ LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "
                          "grad_clip": None, "adam_beta2": 0.999, "ema_decay": None,
                          "mu_max": None, "feedback_grad": "full", "tempo_augment": 0.0,
                          "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0, "validation": 0.0,
-                         "speed_augment": 1.0, "window_fit": "none"}
+                         "speed_augment": 1.0, "window_fit": "none",
+                         "placement_jitter": 0.0}
 
 
 def is_positive_integer(x) -> bool:
@@ -90,7 +91,9 @@ class TrainConfig:
         (``two-group``, ``per-channel``, ``robust``). consistency: rotation consistency of the ACAP
         features (``temporal``, ``spatial``). window_fit: ``batch`` shortens the window until the
         training frames hold a batch of different windows (never below 16 frames while that
-        fits) [``none``: the window as given].
+        fits) [``none``: the window as given]. placement_jitter J (0): on a mesh of several parts,
+        shift each part's placement channels in every training window by a random offset (normal,
+        std J in scaled units, one per part and window; ``losses.jittered_placement``).
 
     Loss (``meshseq.training.losses``):
         w_rec, w_bd, w_kl, w_l2 (1, 0.5, 0.1, 0 [0.1]): weights of L_rec, L_bd, L_KL, L_2 (the sum
@@ -137,6 +140,7 @@ class TrainConfig:
     validation: float = 0.0
     speed_augment: float = 1.0
     tempo_augment: float = 0.0
+    placement_jitter: float = 0.0
     scaling: str = "two-group"
     consistency: str = "temporal"
     given: int = 1
@@ -183,6 +187,8 @@ class TrainConfig:
             raise MeshseqError(f"speed_augment {self.speed_augment!r}: expected a number >= 1 (1 = off)")
         if not (is_finite_number(self.tempo_augment) and 0 <= self.tempo_augment <= 1):
             raise MeshseqError(f"tempo_augment {self.tempo_augment!r}: expected a share in [0, 1] (0 = off)")
+        if not (is_finite_number(self.placement_jitter) and self.placement_jitter >= 0):
+            raise MeshseqError(f"placement_jitter {self.placement_jitter!r}: expected a number >= 0 (0 = off)")
         if self.tempo_augment > 0 and self.speed_augment > 1:
             raise MeshseqError("tempo_augment and speed_augment: choose one of the two augmentations")
         if not float(self.lr) > 0:

@@ -325,7 +325,8 @@ def _objective(model: BDLSTM, data: TrainingData, setup: _Setup, dev, dist_info:
     vertex_loss = make_vertex_loss(data, setup.scaled, setup.splits, setup.scaling, config, dev, truth)
     if vertex_loss is not None and config.speed_augment <= 1 and config.tempo_augment <= 0:
         vertex_loss.cache_targets(frames)  # the truth's vertices of every training frame, once
-    objective = WindowLoss(model, config, vertex_loss)
+    labels = setup.topology.component_labels if setup.model_config.channels > 9 else None
+    objective = WindowLoss(model, config, vertex_loss, labels)
     if dist_info.active:
         objective = nn.parallel.DistributedDataParallel(
             objective,

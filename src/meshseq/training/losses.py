@@ -149,7 +149,10 @@ class WindowLoss(nn.Module):
     weighted loss; terms are detached scalars for logging.
     """
 
-    def __init__(self, model: BDLSTM, config: TrainConfig, vertex_loss: nn.Module | None = None):
+    def __init__(self, model: BDLSTM, config: TrainConfig, vertex_loss: nn.Module | None = None,
+                 part_labels: np.ndarray | None = None):
+        """``part_labels`` ``(V,)``: each vertex's part, on a model with placement channels (what
+        ``placement_jitter`` shifts part by part); None otherwise."""
         super().__init__()
         self.model = model
         self.weights = {"rec": config.w_rec, "bd": config.w_bd, "l2": config.w_l2, "motion": config.w_motion,
@@ -159,12 +162,19 @@ class WindowLoss(nn.Module):
             raise ValueError("w_vertex > 0 needs a VertexLoss (meshseq.vertex_loss)")
         self.vertex_loss = vertex_loss if config.w_vertex > 0 else None
         self.feedback_grad = config.feedback_grad == "full"
+        self.placement_jitter = float(config.placement_jitter) if model.config.channels > 9 else 0.0
+        if self.placement_jitter > 0 and part_labels is None:
+            raise ValueError("placement_jitter > 0 needs the parts' labels (part_labels)")
+        self.part_labels = None if part_labels is None else torch.as_tensor(np.asarray(part_labels), dtype=torch.long)
         # how the tied FC weight's gradient is formed in this objective's roll-outs (fc_lr "encoder")
         model.encoder_grad_scale = encoder_grad_scale(model.fc.weight.shape[1], config)
 
     def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1, rows: torch.Tensor | None = None):
         """``rows`` ``(B, n)``: the stacked training frames the windows are (L_vertex then reads the
         truth's vertices from its cache, ``VertexLoss.cache_targets``), or None."""
+        shift = None
+        if self.placement_jitter > 0 and self.training:
+            windows, shift = jittered_placement(windows, self.part_labels, self.placement_jitter)
         out = self.model(windows, sample=sample, given=given, feedback_grad=self.feedback_grad)
         motion = self.weights["motion"] > 0
         errors = output_frame_errors(out, windows, steps=motion)  # one pass for all these terms
@@ -174,6 +184,8 @@ class WindowLoss(nn.Module):
         if self.vertex_loss is not None:
             # only the picked frames of the chains, stacked: (B or 2B, k, V, C)
             picked = out.frames_at(self.vertex_loss.picks(windows.shape[1]))
+            if shift is not None:  # the truth's vertices sit where the unshifted channels put the parts
+                picked = unjittered(picked, shift)
             B = windows.shape[0]
             terms["vertex"] = self.vertex_loss.of_picked(picked[:B], windows, rows)
             if has_backward_chains(out):
@@ -183,6 +195,30 @@ class WindowLoss(nn.Module):
         total = sum(self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) != 0)
         return total, {k: v.detach() for k, v in terms.items()}
 
+
+
+def jittered_placement(windows: torch.Tensor, labels: torch.Tensor, std: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Windows ``(B, n, V, 12)`` with each part's placement channels shifted by one random offset
+    per window (normal, ``std`` in scaled units), and the shift ``(B, V, 3)``.
+
+    The held-out subject's parts sit elsewhere than the training subjects' (a strap on a slimmer
+    body); shifted at random, a part's absolute placement says nothing of the motion, so the model
+    learns to move the parts from where the given frames put them.
+    """
+    labels = labels.to(windows.device)
+    n_parts = int(labels.max()) + 1
+    offsets = torch.randn(windows.shape[0], n_parts, 3, device=windows.device, dtype=windows.dtype) * std
+    shift = offsets[:, labels]  # (B, V, 3)
+    pad = torch.zeros_like(windows[0, 0, :, :9])[None].expand(windows.shape[0], -1, -1)
+    return windows + torch.cat([pad, shift], dim=-1)[:, None], shift
+
+
+def unjittered(frames: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+    """Frames ``(B or 2B, k, V, 12)`` of jittered windows with the placement shift ``(B, V, 3)`` taken
+    back (the backward chains, rows B.., share their windows' shift)."""
+    reps = frames.shape[0] // shift.shape[0]
+    s = shift.repeat(reps, 1, 1)[:, None]
+    return torch.cat([frames[..., :9], frames[..., 9:] - s], dim=-1)
 
 
 def encoder_grad_scale(fan_in: int, config: TrainConfig) -> float:
