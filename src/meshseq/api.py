@@ -35,6 +35,8 @@ def _to_torch(x, device):
 
 def _check_finite(frames: np.ndarray, what: str) -> None:
     """MeshseqError naming the first frame of ``frames`` ``(T, ...)`` with a NaN or infinity."""
+    if np.isfinite(np.sum(frames)):  # one pass, no temporaries: finite unless some value is not (or it overflowed)
+        return
     ok = np.isfinite(frames.reshape(len(frames), -1)).all(axis=1) if frames.ndim > 1 else np.isfinite(frames)
     if not ok.all():
         t = int(np.flatnonzero(~ok)[0])
@@ -127,7 +129,7 @@ class Model:
             self._reconstructor = acap.Reconstructor(self.reference, self.faces)
         x = x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)  # (a torch tensor)
         _check_finite(x, "features")
-        v = self._reconstructor.solve(self.scaling.invert(x.astype(np.float64)))
+        v = self._reconstructor.solve(x, scaling=self.scaling)
         _check_finite(v, "vertices")
         return v
 

@@ -8,6 +8,7 @@ float32 rounding (tests/test_numpy_net.py: 1e-5 on every variant, with and witho
 - frames inside are vertex-major ``(V, B, C)``: the ring mean is one scipy CSR product with the
   ``(V, B*C)`` view, a layer's channel maps are GEMMs of the ``(V*B, C)`` view;
 - the big FC takes batch-major ``(B, V*C)`` rows (its weight's column order ``v*C + c``);
+- an input normalisation is folded into the first conv layer (``folded_input_norm``);
 - the LSTM layers are ``torch.lstm_cell``'s arithmetic, gates in torch's order ``i, f, g, o``.
 
 Shapes: B rows (chains), V vertices, C channels, L latent, K LSTM layers. No sampling (the VAE
@@ -43,6 +44,19 @@ def ring_matrix(topology, dtype=np.float32):
     return A.astype(dtype)
 
 
+def folded_input_norm(layer: tuple, offset: np.ndarray, spread: np.ndarray, ring) -> tuple:
+    """The first conv layer ``(w_self, w_ring (C_in, C_out), bias (C_out,))`` with the input
+    normalisation ``x' = (x - offset) / spread`` (offset ``(V, C_in)``, spread ``(C_in,)``) folded in:
+    ``x' W1 + (A x') W2 + b = x W1' + (A x) W2' + b_v`` with ``W' = diag(1 / spread) W`` and the bias
+    per vertex ``b_v = b - o W1 - (A o) W2`` ``(V, C_out)``, ``o = offset / spread``."""
+    w_self, w_ring, bias = layer
+    inv = 1.0 / np.asarray(spread, dtype=np.float64)
+    o = np.asarray(offset, dtype=np.float64) * inv
+    w1, w2 = w_self.astype(np.float64) * inv[:, None], w_ring.astype(np.float64) * inv[:, None]
+    b = bias - o @ w_self.astype(np.float64) - (ring.astype(np.float64) @ o) @ w_ring.astype(np.float64)
+    return w1.astype(np.float32), w2.astype(np.float32), b.astype(np.float32)
+
+
 class NumpyNet:
     """``BDLSTM``'s inference (``step``, ``rollout``, ``initial_state``) on numpy arrays.
 
@@ -60,9 +74,10 @@ class NumpyNet:
         C, K = config.channels, config.conv_layers
         self.ring = ring
         self._ring_parts, self._pool = self._split_ring(ring, threads)
+        self._bias_cache = {}  # (id of a conv bias, batch) -> its rows (``_bias_rows``)
         # (w_self, w_ring, bias) as right factors of (rows, C_in) views: encoder W1, W2 (C_in, C_out)
         convs = [(t[f"convs.{k}.weight"][:C], t[f"convs.{k}.weight"][C:], t[f"convs.{k}.bias"]) for k in range(K)]
-        self.enc = convs
+        self.enc = list(convs)
         # decoder layer k: encoder layer K-1-k transposed, its own bias
         self.dec = [(np.ascontiguousarray(convs[K - 1 - k][0].T), np.ascontiguousarray(convs[K - 1 - k][1].T),
                      t[f"dec_conv_bias.{k}"]) for k in range(K)]
@@ -74,7 +89,11 @@ class NumpyNet:
         self.scale = None if config.step_scale is None else np.asarray(config.step_scale, dtype=np.float32)
         self.norm = None
         if config.input_norm:  # (V, C) offset, (C,) spread: stored (C, V, 1), (C, 1, 1)
-            self.norm = (np.ascontiguousarray(t["input_offset"][:, :, 0].T), t["input_spread"].reshape(-1))
+            norm = (np.ascontiguousarray(t["input_offset"][:, :, 0].T), t["input_spread"].reshape(-1))
+            if K:  # folded into the first layer: no pass over the frames for it
+                self.enc[0] = folded_input_norm(self.enc[0], *norm, ring)
+            else:
+                self.norm = norm
 
     @staticmethod
     def _split_ring(ring, threads: int | None):
@@ -103,20 +122,33 @@ class NumpyNet:
         one block of vertices per thread (scipy's product and numpy release the GIL)."""
         w_self, w_ring, bias = layer
         V, B, C = x.shape
-        out = np.empty((V, B, w_self.shape[1]), dtype=np.float32)
+        C_out = w_self.shape[1]
+        out = np.empty((V, B, C_out), dtype=np.float32)
         cols = x.reshape(V, B * C)
+        bias_rows = self._bias_rows(bias, B)  # (B*C_out,) or per vertex (V, B*C_out)
 
         def rows(part: int) -> None:
             ring, r = self._ring_parts[part]
-            y = out[r].reshape(-1, w_self.shape[1])  # a view: the block's rows of out, written in place
+            y = out[r].reshape(-1, C_out)  # a view: the block's rows of out, written in place
             np.matmul(x[r].reshape(-1, C), w_self, out=y)
             y += (ring @ cols).reshape(-1, C) @ w_ring
-            y += bias
+            y_rows = out[r].reshape(-1, B * C_out)  # rows of B*C_out: a long inner loop for the bias
+            y_rows += bias_rows if bias_rows.ndim == 1 else bias_rows[r]
             if act:
                 np.tanh(y, out=y)
 
         self._map(rows)
         return out
+
+    def _bias_rows(self, bias: np.ndarray, batch: int) -> np.ndarray:
+        """A conv bias ``(C_out,)`` or per vertex ``(V, C_out)`` repeated for ``batch`` rows: ``(batch *
+        C_out,)`` or ``(V, batch * C_out)`` (kept for the next call with this batch)."""
+        key = (id(bias), batch)
+        if key not in self._bias_cache:
+            if len(self._bias_cache) >= 4 * (len(self.enc) + len(self.dec)):  # a few batch sizes at most
+                self._bias_cache.clear()
+            self._bias_cache[key] = np.ascontiguousarray(np.tile(bias, batch))
+        return self._bias_cache[key]
 
     def _fc(self, x: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
         """The decoder's FC ``x @ weight + bias``: ``(B, L) @ (L, N)`` -> ``(B, N)``, a block of the

@@ -103,19 +103,27 @@ class Reconstructor:
         offsets: np.ndarray | None = None,
         target: np.ndarray | None = None,
         rigid: bool = False,
+        scaling=None,
     ) -> np.ndarray:
-        """Vertices ``(T, V, 3)`` from ACAP features ``(T, V, 9)`` (unscaled); see ``solve_gradients``.
+        """Vertices ``(T, V, 3)`` from ACAP features ``(T, V, 9)``; see ``solve_gradients``.
 
         Features ``(T, V, 12)`` of a multi-part mesh carry its placement channels
         (:mod:`meshseq.acap.parts`): the parts go where they say unless ``offsets`` is given.
+        ``scaling``: the features are scaled by this ``Scaling`` (:mod:`meshseq.acap.scaling`),
+        inverted a chunk of frames at a time (no float64 copy of them all); None: unscaled.
         """
-        f = np.asarray(features, dtype=np.float64)
+        f = np.asarray(features, dtype=np.float64) if scaling is None else np.asarray(features)
         single = f.ndim == 2
         f = f[None] if single else f
         if offsets is None and f.shape[-1] > 9:
-            offsets = offsets_from_channels(f[..., 9:12], self.topology, self.reference)
+            place = f[..., 9:12] if scaling is None else scaling.channels(slice(9, 12)).invert(f[..., 9:12])
+            offsets = offsets_from_channels(place, self.topology, self.reference)
+
+        def unscaled(frames: slice) -> np.ndarray:
+            return f[frames] if scaling is None else scaling.invert(f[frames])
+
         out = self._solve_rhs(
-            lambda frames: self.rhs(features_to_gradients(f[frames])), len(f), offsets, target, rigid
+            lambda frames: self.rhs(features_to_gradients(unscaled(frames))), len(f), offsets, target, rigid
         )
         return out[0] if single else out
 

@@ -69,10 +69,14 @@ class Scaling:
         lo, scale = self._as(features, self.minimum), self._as(features, self._scale)
         return (features - lo) * scale + _LOW
 
+    def channels(self, which: slice) -> "Scaling":
+        """The map of channels ``which`` alone (for features ``(..., len(which))``)."""
+        return Scaling(self.minimum[which], self.maximum[which], self.mode)
+
     def invert(self, scaled):
         """Scaled ``(..., C)`` -> features, numpy or torch."""
         if isinstance(scaled, np.ndarray):  # the same operations, in place after the first (no temporaries)
-            out = np.asarray(scaled - _LOW, dtype=np.result_type(scaled, self._scale))
+            out = np.subtract(scaled, _LOW, dtype=np.result_type(scaled, self._scale))  # float32 in: one pass
             out /= self._scale
             out += self.minimum
             return out
