@@ -184,3 +184,44 @@ def test_a_part_whose_lowest_vertex_is_an_outlier_keeps_its_logs_off_the_2pi_she
     lowest = np.linalg.norm(spatial_bfs(axis, theta, topo)[0], axis=-1)
     assert (lowest[41:] > np.pi).mean() > 0.9  # what the lowest root did: the band on the 2 pi shell
     assert np.array_equal(lowest[:40], logs[:40])
+
+
+def test_placement_jitter_shifts_each_part_by_one_offset_per_window_and_is_taken_back():
+    import torch
+
+    from meshseq.training.losses import jittered_placement, unjittered
+
+    torch.manual_seed(0)
+    labels = torch.tensor([0, 0, 0, 1, 1, 2])
+    windows = torch.randn(3, 5, 6, 12)
+    shifted, shift = jittered_placement(windows, labels, 0.3)
+    assert torch.equal(shifted[..., :9], windows[..., :9])  # the ACAP channels untouched
+    d = shifted[..., 9:] - windows[..., 9:]  # (B, n, V, 3)
+    assert torch.allclose(d, d[:, :1].expand_as(d), atol=1e-6)  # one offset per window, over all its frames
+    for part in range(3):  # ... and over each part's vertices, different between parts and windows
+        rows = d[:, 0, labels == part]
+        assert torch.allclose(rows, rows[:, :1].expand_as(rows), atol=1e-6)
+    assert d[:, 0, 0].sub(d[:, 0, 3]).abs().min() > 0 and d[0, 0, 0].sub(d[1, 0, 0]).abs().min() > 0
+    assert 0.05 < float(d[:, 0].std()) < 1.0
+    both = torch.cat([shifted[:, [1, 4]], shifted[:, [4, 1]]])  # forward rows, then backward rows
+    back = unjittered(both, shift)
+    assert torch.allclose(back[:3], windows[:, [1, 4]], atol=1e-6)
+    assert torch.allclose(back[3:], windows[:, [4, 1]], atol=1e-6)
+
+
+def test_placement_jitter_trains_only_models_with_placement_channels(multi, tmp_path):
+    from meshseq.errors import MeshseqError
+    from meshseq.train import TrainConfig, load_training_data, train
+
+    from conftest import torch_threads
+
+    with pytest.raises(MeshseqError, match="placement_jitter"):
+        TrainConfig(placement_jitter=-0.1)
+    with torch_threads(1):
+        train(load_training_data([str(multi[1])]), tmp_path / "run",
+              TrainConfig(iterations=3, window=12, batch=4, eval_every=0, checkpoint_every=0, log_every=0,
+                          placement_jitter=0.3),
+              model_options={"latent": 16, "lstm_layers": 2}, device="cpu", progress=False, log=lambda m: None)
+    from meshseq.api import load
+
+    assert load(tmp_path / "run").meta["train"]["placement_jitter"] == 0.3
