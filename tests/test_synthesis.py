@@ -564,3 +564,17 @@ def test_vae_baseline_beats_standing_still_on_its_training_frames(trained, model
     still = given[:, -1]
     err = lambda p: np.sqrt(np.square(p - truth).sum(-1)).mean()
     assert err(ours) < 0.7 * err(still)  # normalised: 0.54; on raw frames: 0.88
+
+
+def test_feature_change_curve_is_the_same_a_few_starts_at_a_time(model, trained, monkeypatch):
+    from meshseq import evaluate
+
+    feats = model.features(trained[2].vertices)
+    starts = np.arange(0, 13)
+    monkeypatch.setattr(evaluate, "CURVE_STARTS", 100)
+    whole = evaluate.feature_change(model, feats, starts, 2, 6, ["ours", "linear_acap"])
+    monkeypatch.setattr(evaluate, "CURVE_STARTS", 3)
+    parts = evaluate.feature_change(model, feats, starts, 2, 6, ["ours", "linear_acap"])
+    for m in ("ours", "linear_acap"):
+        np.testing.assert_allclose(parts[m], whole[m], rtol=1e-6)
+    assert parts["ground_truth"] == whole["ground_truth"]
