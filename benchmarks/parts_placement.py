@@ -11,6 +11,10 @@ and zero velocity, over starts every 4 frames; with placement channels also ours
 placement channels swapped into its predicted features (how much of ours' error the parts' placement
 explains); writes OUT.json. ``--validation-subject S`` also holds out subject S's sequences and scores
 them first: choose between recipes on S, then confirm on the held-out subject.
+``--placement-jitter J`` trains with ``TrainConfig.placement_jitter = J``:
+
+    python benchmarks/parts_placement.py bodies1k_parts.h5 --validation-subject female_old \
+        --iterations 2000 --placement-jitter 0.1 --out runs/pp-j0.1
 """
 
 from __future__ import annotations
