@@ -91,9 +91,9 @@ class TrainConfig:
         (``two-group``, ``per-channel``, ``robust``). consistency: rotation consistency of the ACAP
         features (``temporal``, ``spatial``). window_fit: ``batch`` shortens the window until the
         training frames hold a batch of different windows (never below 16 frames while that
-        fits) [``none``: the window as given]. placement_jitter J (0): on a mesh of several parts,
-        shift each part's placement channels in every training window by a random offset (normal,
-        std J in scaled units, one per part and window; ``losses.jittered_placement``).
+        fits) [``none``: the window as given]. placement_jitter J (0.1 [0]): on a mesh of several
+        parts, shift each part's placement channels in every training window by a random offset
+        (normal, std J in scaled units, one per part and window; ``losses.jittered_placement``).
 
     Loss (``meshseq.training.losses``):
         w_rec, w_bd, w_kl, w_l2 (1, 0.5, 0.1, 0 [0.1]): weights of L_rec, L_bd, L_KL, L_2 (the sum
@@ -140,7 +140,7 @@ class TrainConfig:
     validation: float = 0.0
     speed_augment: float = 1.0
     tempo_augment: float = 0.0
-    placement_jitter: float = 0.0
+    placement_jitter: float = 0.1
     scaling: str = "two-group"
     consistency: str = "temporal"
     given: int = 1
