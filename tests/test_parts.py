@@ -209,7 +209,7 @@ def test_placement_jitter_shifts_each_part_by_one_offset_per_window_and_is_taken
     assert torch.allclose(back[3:], windows[:, [4, 1]], atol=1e-6)
 
 
-def test_placement_jitter_trains_only_models_with_placement_channels(multi, tmp_path):
+def test_placement_jitter_is_checked_and_stored_with_the_run(multi, tmp_path):
     from meshseq.errors import MeshseqError
     from meshseq.train import TrainConfig, load_training_data, train
 
@@ -225,3 +225,4 @@ def test_placement_jitter_trains_only_models_with_placement_channels(multi, tmp_
     from meshseq.api import load
 
     assert load(tmp_path / "run").meta["train"]["placement_jitter"] == 0.3
+

@@ -165,7 +165,8 @@ class WindowLoss(nn.Module):
         self.placement_jitter = float(config.placement_jitter) if model.config.channels > 9 else 0.0
         if self.placement_jitter > 0 and part_labels is None:
             raise ValueError("placement_jitter > 0 needs the parts' labels (part_labels)")
-        self.part_labels = None if part_labels is None else torch.as_tensor(np.asarray(part_labels), dtype=torch.long)
+        self.part_labels = None if part_labels is None else torch.as_tensor(  # on the model's device, once
+            np.asarray(part_labels), dtype=torch.long, device=model.fc.weight.device)
         # how the tied FC weight's gradient is formed in this objective's roll-outs (fc_lr "encoder")
         model.encoder_grad_scale = encoder_grad_scale(model.fc.weight.shape[1], config)
 
@@ -209,16 +210,14 @@ def jittered_placement(windows: torch.Tensor, labels: torch.Tensor, std: float) 
     n_parts = int(labels.max()) + 1
     offsets = torch.randn(windows.shape[0], n_parts, 3, device=windows.device, dtype=windows.dtype) * std
     shift = offsets[:, labels]  # (B, V, 3)
-    pad = torch.zeros_like(windows[0, 0, :, :9])[None].expand(windows.shape[0], -1, -1)
-    return windows + torch.cat([pad, shift], dim=-1)[:, None], shift
+    return windows + nn.functional.pad(shift, (9, 0))[:, None], shift  # zeros on the 9 ACAP channels
 
 
 def unjittered(frames: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
     """Frames ``(B or 2B, k, V, 12)`` of jittered windows with the placement shift ``(B, V, 3)`` taken
     back (the backward chains, rows B.., share their windows' shift)."""
     reps = frames.shape[0] // shift.shape[0]
-    s = shift.repeat(reps, 1, 1)[:, None]
-    return torch.cat([frames[..., :9], frames[..., 9:] - s], dim=-1)
+    return frames - nn.functional.pad(shift, (9, 0)).repeat(reps, 1, 1)[:, None]
 
 
 def encoder_grad_scale(fan_in: int, config: TrainConfig) -> float:
