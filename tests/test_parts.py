@@ -226,3 +226,33 @@ def test_placement_jitter_is_checked_and_stored_with_the_run(multi, tmp_path):
 
     assert load(tmp_path / "run").meta["train"]["placement_jitter"] == 0.3
 
+
+def test_placement_jitter_keeps_l_vertex_against_the_unshifted_truth_with_or_without_cached_targets(multi):
+    """L_vertex reads the truth from its cache (rows) or reconstructs it from the windows: both must
+    be the unshifted truth, as ours is taken back before it is measured."""
+    import torch
+
+    from meshseq import acap
+    from meshseq.acap.torch_reconstruct import TorchReconstructor
+    from meshseq.model import BDLSTM, ModelConfig
+    from meshseq.train import TrainConfig, WindowLoss
+    from meshseq.vertex_loss import VertexLoss
+
+    seq, _ = multi
+    feats = extract(seq.vertices, seq.faces, placement=True)
+    scaling = acap.Scaling.fit(feats)
+    frames = torch.as_tensor(scaling.apply(feats), dtype=torch.float32)
+    rows = torch.tensor([[2, 3, 4, 5, 6, 7], [20, 21, 22, 23, 24, 25]])
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    torch.manual_seed(0)
+    model = BDLSTM(ModelConfig(n_vertices=seq.n_vertices, channels=12, latent=16, lstm_layers=2), topo)
+    vloss = VertexLoss(TorchReconstructor(Reconstructor(seq.vertices[0], seq.faces)), scaling, 1.0, 2)
+    assert vloss.cache_targets(frames)
+    objective = WindowLoss(model, TrainConfig(window=6, placement_jitter=0.3), vloss, topo.component_labels)
+
+    def vertex_term(**kw):
+        torch.manual_seed(1)  # the same shifts
+        return objective(frames[rows], sample=False, **kw)[1]["vertex"]
+
+    cached, reconstructed = vertex_term(rows=rows), vertex_term()
+    assert torch.isclose(cached, reconstructed, rtol=1e-4)

@@ -173,7 +173,7 @@ class WindowLoss(nn.Module):
     def forward(self, windows: torch.Tensor, sample: bool = True, given: int = 1, rows: torch.Tensor | None = None):
         """``rows`` ``(B, n)``: the stacked training frames the windows are (L_vertex then reads the
         truth's vertices from its cache, ``VertexLoss.cache_targets``), or None."""
-        shift = None
+        truth, shift = windows, None  # L_vertex compares with the unshifted truth
         if self.placement_jitter > 0 and self.training:
             windows, shift = jittered_placement(windows, self.part_labels, self.placement_jitter)
         out = self.model(windows, sample=sample, given=given, feedback_grad=self.feedback_grad)
@@ -188,10 +188,10 @@ class WindowLoss(nn.Module):
             if shift is not None:  # the truth's vertices sit where the unshifted channels put the parts
                 picked = unjittered(picked, shift)
             B = windows.shape[0]
-            terms["vertex"] = self.vertex_loss.of_picked(picked[:B], windows, rows)
+            terms["vertex"] = self.vertex_loss.of_picked(picked[:B], truth, rows)
             if has_backward_chains(out):
                 back_rows = None if rows is None else rows.flip(1)
-                terms["vertex"] = terms["vertex"] + self.vertex_loss.of_picked(picked[B:], windows.flip(1), back_rows)
+                terms["vertex"] = terms["vertex"] + self.vertex_loss.of_picked(picked[B:], truth.flip(1), back_rows)
         terms["l2"] = sum(squared_norm(p) for p in self.model.weight_parameters())
         total = sum(self.weights[k] * v for k, v in terms.items() if self.weights.get(k, 0) != 0)
         return total, {k: v.detach() for k, v in terms.items()}
