@@ -82,8 +82,11 @@ def random_model(rings: int, segments: int) -> tuple[dict[str, Model], np.ndarra
     scaling = Scaling.fit(feats)
     net.set_input_norm(scaling.apply(feats))
     meta = {"scaling": scaling.to_dict()}
-    numpy_net = NumpyNet(config, {k: v.numpy() for k, v in net.state_dict().items()}, ring_matrix(topo))
-    return {"numpy": Model(numpy_net, meta, seq.vertices[0], seq.faces, "cpu"),
+    weights, ring = {k: v.numpy() for k, v in net.state_dict().items()}, ring_matrix(topo)
+    # numpy: with the compiled mesh convolution where it builds (meshseq.native); numpy-plain: numpy's layers
+    return {"numpy": Model(NumpyNet(config, weights, ring), meta, seq.vertices[0], seq.faces, "cpu"),
+            "numpy-plain": Model(NumpyNet(config, weights, ring, compiled=False), meta, seq.vertices[0], seq.faces,
+                                 "cpu"),
             "torch": Model(net, meta, seq.vertices[0], seq.faces, "cpu")}, seq.vertices
 
 
@@ -157,7 +160,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--meshes", default=",".join(MESHES), help="which of 3k,10k")
-    ap.add_argument("--backends", default="numpy,torch", help="which of numpy,torch")
+    ap.add_argument("--backends", default="numpy,torch", help="which of numpy,numpy-plain,torch (numpy: with the "
+                    "compiled mesh convolution where it builds; numpy-plain: numpy's layers)")
     ap.add_argument("--command", nargs=2, metavar=("RUN", "DATA"), default=None,
                     help="also time `meshseq complete RUN DATA --samples 8` of a 30-frame gap")
     ap.add_argument("--threads", type=int, default=None,
@@ -167,8 +171,11 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     gflops, gbs = machine_rates(args.repeat)
+    from meshseq import native
+
     print(f"machine: float32 matmul {gflops:.1f} GFLOP/s, copy {gbs:.1f} GB/s (read + write); "
-          f"torch threads {torch.get_num_threads()}")
+          f"torch threads {torch.get_num_threads()}; compiled mesh convolution "
+          f"{'built' if native.conv_library() else 'NOT available (numpy = numpy-plain)'}")
     targets = []
     backends = args.backends.split(",")
     for name in args.meshes.split(","):

@@ -20,7 +20,7 @@ from meshseq.io import save_sequence
 from meshseq.mesh import Topology
 from meshseq.model import BDLSTM, ModelConfig
 from meshseq.model_config import tensor_shapes
-from meshseq.numpy_net import NumpyNet, ring_matrix
+from meshseq.numpy_net import COMPILED_MIN_CHAINS, NumpyNet, ring_matrix
 
 TOL = 1e-5
 
@@ -30,8 +30,9 @@ def _limb():
     return seq, Topology.from_faces(seq.faces, seq.n_vertices)
 
 
-def _nets(variant: str, input_norm: bool, threads: int = 2):
-    """A randomly initialised ``BDLSTM`` (bounded head, step scale) and its ``NumpyNet``."""
+def _nets(variant: str, input_norm: bool, threads: int = 2, compiled: bool = True):
+    """A randomly initialised ``BDLSTM`` (bounded head, step scale) and its ``NumpyNet`` (with the
+    compiled mesh convolution, which must build here, or numpy's layers)."""
     seq, topo = _limb()
     torch.manual_seed(3)
     config = ModelConfig(n_vertices=seq.n_vertices, latent=16, lstm_layers=2, variant=variant,
@@ -44,7 +45,7 @@ def _nets(variant: str, input_norm: bool, threads: int = 2):
     if input_norm:
         net.set_input_norm(np.random.default_rng(0).uniform(-0.5, 0.5, (6, seq.n_vertices, 9)))
     weights = {k: v.numpy() for k, v in net.state_dict().items()}
-    return net, NumpyNet(config, weights, ring_matrix(topo), threads=threads)
+    return net, NumpyNet(config, weights, ring_matrix(topo), threads=threads, compiled=compiled)
 
 
 @pytest.mark.parametrize("variant", ["uni", "bd", "std-bd"])
@@ -59,12 +60,23 @@ def test_tensor_shapes_are_the_modules_state_dict(variant):
 @pytest.mark.parametrize("variant", ["uni", "bd", "std-bd"])
 @pytest.mark.parametrize("input_norm", [False, True])
 @pytest.mark.parametrize("threads", [1, 2])
-def test_numpy_step_and_rollout_equal_torch(variant, input_norm, threads):
-    net, npnet = _nets(variant, input_norm, threads)
+@pytest.mark.parametrize("compiled", [True, False])
+def test_numpy_step_and_rollout_equal_torch(variant, input_norm, threads, compiled):
+    _check_against_torch(variant, input_norm, threads, compiled, chains=8)
+
+
+@pytest.mark.parametrize("chains", [5, 16, 20])
+def test_compiled_layers_take_any_number_of_chains(chains):
+    _check_against_torch("std-bd", True, 2, True, chains)
+
+
+def _check_against_torch(variant: str, input_norm: bool, threads: int, compiled: bool, chains: int) -> None:
+    net, npnet = _nets(variant, input_norm, threads, compiled)
+    assert npnet.channel_major(chains) is (compiled and chains >= COMPILED_MIN_CHAINS)
     rng = np.random.default_rng(1)
-    x = rng.uniform(-0.9, 0.9, (4, net.config.n_vertices, 9)).astype(np.float32)
-    n_forward = 4 if variant == "uni" else 2
-    h, c = net.initial_state(n_forward, 4 - n_forward)
+    x = rng.uniform(-0.9, 0.9, (chains, net.config.n_vertices, 9)).astype(np.float32)
+    n_forward = chains if variant == "uni" else chains // 2
+    h, c = net.initial_state(n_forward, chains - n_forward)
     state = (torch.rand(h.shape) * 0.2 - 0.1, torch.rand(c.shape) * 0.2 - 0.1)
     np_state = tuple(s.numpy().copy() for s in state)
     with torch.no_grad():
@@ -78,7 +90,7 @@ def test_numpy_step_and_rollout_equal_torch(variant, input_norm, threads):
     assert frames_np.shape == tuple(frames.shape)
     assert np.abs(frames_np - frames.numpy()).max() < TOL
     assert np.abs(fin_np[1] - fin[1].numpy()).max() < TOL
-    assert np.array_equal(npnet.initial_state(n_forward, 4 - n_forward)[0], h.numpy())
+    assert np.array_equal(npnet.initial_state(n_forward, chains - n_forward)[0], h.numpy())
     with torch.no_grad():
         mu, _ = net.encode(torch.from_numpy(x))
         d = net.decode(mu)
@@ -165,3 +177,20 @@ def test_sampling_on_the_numpy_backend_is_one_line_naming_the_torch_model(run):
     for call in (lambda: model.sample(frames, 4), lambda: model.rollout(model.features(frames), 3, sample=True)):
         with pytest.raises(MeshseqError, match="needs the torch model"):
             call()
+
+
+def test_without_a_compiler_the_numpy_layers_run_after_one_warning(monkeypatch, tmp_path):
+    from meshseq import native
+
+    monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
+    monkeypatch.setenv("MESHSEQ_KERNEL_DIR", str(tmp_path / "builds"))
+    monkeypatch.setattr(native, "_library", None)  # not tried yet in this process
+    with pytest.warns(RuntimeWarning, match="could not be built"):
+        assert native.conv_library() is None
+    assert not list((tmp_path / "builds").glob("*.so"))  # nothing half-built left under a build's name
+    net, npnet = _nets("bd", True, compiled=None)
+    assert not npnet.channel_major(16)  # numpy's layers, still equal to torch's step
+    x = np.random.default_rng(2).uniform(-0.9, 0.9, (2, net.config.n_vertices, 9)).astype(np.float32)
+    with torch.no_grad():
+        _, nxt, _, _ = net.step(net.initial_state(1, 1), torch.from_numpy(x), n_forward=1)
+    assert np.abs(npnet.step(npnet.initial_state(1, 1), x, 1)[1] - nxt.numpy()).max() < TOL

@@ -57,9 +57,11 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from meshseq.native import cpu_signature
+
 _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / name for name in ("mesh_conv.cpp", "fc.cpp", "frame_errors.cpp", "lstm.cpp")]
-_HEADERS = [_CSRC / "simd.h"]  # included by the sources; torch's build cache hashes only sources and flags
+_HEADERS = [_CSRC / "simd.h", _CSRC / "conv_forward.h"]  # included by the sources; torch's build cache hashes only sources and flags
 _lock = threading.Lock()
 _cpu_kernels: bool | None = None  # None: not tried yet
 
@@ -100,28 +102,6 @@ def cpu_kernels_available() -> bool:
                           "training on CPU uses the slower torch-op path", RuntimeWarning, stacklevel=2)
             _cpu_kernels = False
     return _cpu_kernels
-
-
-def cpu_signature(cpuinfo: str | None = None) -> str:
-    """8 hex digits naming this CPU's instruction sets (the ``flags`` of ``/proc/cpuinfo``; elsewhere
-    the platform's processor name), part of the build folder's name.
-
-    The kernels are compiled with ``-march=native``: a build made on a CPU with AVX-512 would
-    crash (illegal instruction) when loaded on one without, e.g. from a home folder shared by
-    the nodes of a cluster, so each kind of CPU gets its own build. ``cpuinfo``: the text of
-    ``/proc/cpuinfo`` (read when None).
-    """
-    import hashlib
-    import platform
-
-    if cpuinfo is None:
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            cpuinfo = ""
-    flags = next((line.split(":", 1)[1] for line in cpuinfo.splitlines() if line.startswith(("flags", "Features"))), None)
-    key = " ".join(sorted(flags.split())) if flags else f"{platform.machine()} {platform.processor()}"
-    return hashlib.sha1(key.encode()).hexdigest()[:8]
 
 
 def clear_stale_lock(build: Path, max_age_s: float = 600.0) -> bool:

@@ -5,9 +5,15 @@ without importing torch (its import is most of a short command's time).
 module's docstring for the step), from the same tensors (a checkpoint's ``model.*`` entries), to
 float32 rounding (tests/test_numpy_net.py: 1e-5 on every variant, with and without input_norm):
 
-- frames inside are vertex-major ``(V, B, C)``: the ring mean is one scipy CSR product with the
-  ``(V, B*C)`` view, a layer's channel maps are GEMMs of the ``(V*B, C)`` view;
-- the big FC takes batch-major ``(B, V*C)`` rows (its weight's column order ``v*C + c``);
+- frames inside are vertex-major. With the compiled mesh convolution (``meshseq.native``: built
+  with the system's C++ compiler on first use, no torch) and at least ``COMPILED_MIN_CHAINS``
+  chains they are ``(V, C, Bp)``, the chains padded to a whole SIMD tile
+  (``native.padded_chains``), and a conv layer is one pass of ``csrc/conv_forward.h`` (the
+  training kernel's arithmetic). Otherwise ``(V, B, C)``: the ring
+  mean is one scipy CSR product with the ``(V, B*C)`` view, a layer's channel maps are GEMMs of
+  the ``(V*B, C)`` view;
+- the big FC's weight columns are in the order ``v*C + c``: channel-major frames are its
+  ``(V*C, Bp)`` columns as they lie, channel-last ones its ``(B, V*C)`` rows;
 - an input normalisation is folded into the first conv layer (``folded_input_norm``);
 - the LSTM layers are ``torch.lstm_cell``'s arithmetic, gates in torch's order ``i, f, g, o``.
 
@@ -21,6 +27,9 @@ import numpy as np
 
 from meshseq.errors import MeshseqError
 from meshseq.model_config import ModelConfig
+
+#: The fewest chains that run the compiled layers (``NumpyNet.channel_major``).
+COMPILED_MIN_CHAINS = 5
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
@@ -66,9 +75,13 @@ class NumpyNet:
             ``convs.0.weight``, ``lstm.weight_ih_l0``, ...), float32.
         ring: ``ring_matrix(topology)``.
         threads: threads of the conv layers (blocks of vertices); default ``frame_threads()``.
+        compiled: use the compiled mesh convolution (``meshseq.native``); default: where it builds.
     """
 
-    def __init__(self, config: ModelConfig, tensors: dict, ring, threads: int | None = None):
+    def __init__(self, config: ModelConfig, tensors: dict, ring, threads: int | None = None,
+                 compiled: bool | None = None):
+        from meshseq import native
+
         self.config = config
         t = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in tensors.items()}
         C, K = config.channels, config.conv_layers
@@ -94,6 +107,17 @@ class NumpyNet:
                 self.enc[0] = folded_input_norm(self.enc[0], *norm, ring)
             else:
                 self.norm = norm
+        self._lib = native.conv_library() if compiled is None or compiled else None
+        if compiled and self._lib is None:
+            raise MeshseqError("the compiled mesh convolution is not available (see the warning above)")
+        if self._lib is not None:
+            from meshseq.acap.features import frame_threads
+
+            self._threads = frame_threads() if threads is None else threads
+            self._cring = native.CompiledRing(ring)
+            # (W_s, W_r) as left factors (C_out, C_in) of channel-major frames
+            self._compiled = {id(layer): (np.ascontiguousarray(layer[0].T), np.ascontiguousarray(layer[1].T))
+                              for layer in self.enc + self.dec}
 
     @staticmethod
     def _split_ring(ring, threads: int | None):
@@ -117,9 +141,25 @@ class NumpyNet:
 
     # -- the pieces (vertex-major (V, B, C)) ----------------------------------------------------
 
-    def _conv(self, x: np.ndarray, layer: tuple, act: bool) -> np.ndarray:
-        """One mesh-conv layer ``(V, B, C_in)`` -> ``(V, B, C_out)``: ``x W1 + (A x) W2 + b`` [tanh],
-        one block of vertices per thread (scipy's product and numpy release the GIL)."""
+    def channel_major(self, chains: int) -> bool:
+        """Whether a batch of ``chains`` runs the compiled layers on channel-major frames ``(V, C, Bp)``:
+        where they are built and the batch fills more than half a SIMD tile (``COMPILED_MIN_CHAINS``;
+        below that numpy's layers are faster: one compiled pass costs the same for 1 chain as for 8)."""
+        return self._lib is not None and chains >= COMPILED_MIN_CHAINS
+
+    def _conv(self, x: np.ndarray, layer: tuple, act: bool, cm: bool) -> np.ndarray:
+        """One mesh-conv layer on vertex-major frames (channel-major if ``cm``): ``x W1 + (A x) W2 + b``
+        [tanh]."""
+        if not cm:
+            return self._numpy_conv(x, layer, act)
+        from meshseq import native
+
+        w_self, w_ring = self._compiled[id(layer)]
+        return native.conv(self._lib, x, w_self, w_ring, layer[2], self._cring, act, self._threads)
+
+    def _numpy_conv(self, x: np.ndarray, layer: tuple, act: bool) -> np.ndarray:
+        """One mesh-conv layer ``(V, B, C_in)`` -> ``(V, B, C_out)`` in numpy, one block of vertices per
+        thread (scipy's product and numpy release the GIL)."""
         w_self, w_ring, bias = layer
         V, B, C = x.shape
         C_out = w_self.shape[1]
@@ -165,14 +205,13 @@ class NumpyNet:
         self._map(cols)
         return out
 
-    def _fc_encode(self, x: np.ndarray) -> np.ndarray:
-        """The encoder's FC ``x @ W^T + b``: ``(B, N)`` -> ``(B, L)`` computed as ``W x^T``, a block
-        of W's rows per thread (W ``(L, N)`` streamed row by row: BLAS takes a wide row-major
-        weight as the left factor 2-3x faster than its transpose as the right one)."""
+    def _fc_encode(self, xt: np.ndarray) -> np.ndarray:
+        """The encoder's FC ``W x + b`` of columns ``xt`` ``(N, B)`` -> ``(B, L)``, a block of W's rows
+        per thread (W ``(L, N)`` streamed row by row: BLAS takes a wide row-major weight as the left
+        factor 2-3x faster than its transpose as the right one)."""
         weight = self.fc_weight
-        out = np.empty((weight.shape[0], x.shape[0]), dtype=np.float32)
+        out = np.empty((weight.shape[0], xt.shape[1]), dtype=np.float32)
         bounds = np.linspace(0, weight.shape[0], len(self._ring_parts) + 1).astype(int)
-        xt = x.T
 
         def rows(part: int) -> None:
             a, b = bounds[part], bounds[part + 1]
@@ -188,14 +227,19 @@ class NumpyNet:
         else:
             list(self._pool.map(work, range(len(self._ring_parts))))
 
-    def _encode(self, x: np.ndarray) -> np.ndarray:
-        """``(V, B, C)`` -> ``mu`` ``(B, L)``."""
+    def _encode(self, x: np.ndarray, n: int, cm: bool) -> np.ndarray:
+        """Vertex-major frames -> ``mu`` ``(n, L)`` of the first ``n`` chains."""
         if self.norm is not None:
-            x = (x - self.norm[0][:, None]) / self.norm[1]
+            offset, spread = self.norm
+            x = (x - offset[:, :, None]) / spread[:, None] if cm else (x - offset[:, None]) / spread
         for layer in self.enc:
-            x = self._conv(x, layer, True)
-        V, B, C = x.shape
-        e = self._fc_encode(np.ascontiguousarray(x.transpose(1, 0, 2)).reshape(B, V * C))
+            x = self._conv(x, layer, True, cm)
+        if not cm:
+            V, B, C = x.shape
+            cols = np.ascontiguousarray(x.transpose(1, 0, 2)).reshape(B, V * C).T
+        else:
+            cols = x.reshape(-1, x.shape[-1])  # (V*C, Bp): the FC's columns as they lie
+        e = self._fc_encode(cols)[:n]
         mu = e @ self.mu[0]
         mu += self.mu[1]
         if self.config.mu_max is not None:
@@ -203,15 +247,33 @@ class NumpyNet:
             mu = m * np.tanh(mu / m)
         return mu
 
-    def _decode(self, h: np.ndarray) -> np.ndarray:
-        """``(B, L)`` -> ``dX`` ``(V, B, C)`` (tied FC, decoder convs; no tanh after the last)."""
+    def _decode(self, h: np.ndarray, cm: bool) -> np.ndarray:
+        """``(B, L)`` -> ``dX`` vertex-major (tied FC, decoder convs; no tanh after the last)."""
         B, V, C = h.shape[0], self.config.n_vertices, self.config.channels
-        y = self._fc(h, self.fc_weight, self.dec_bias)
-        y = np.ascontiguousarray(y.reshape(B, V, C).transpose(1, 0, 2))
+        y = self._to_vm(self._fc(h, self.fc_weight, self.dec_bias).reshape(B, V, C), cm)
         K = len(self.dec)
         for k, layer in enumerate(self.dec):
-            y = self._conv(y, layer, k < K - 1)
+            y = self._conv(y, layer, k < K - 1, cm)
         return y
+
+    @staticmethod
+    def _to_vm(x: np.ndarray, cm: bool) -> np.ndarray:
+        """Frames ``(B, V, C)`` -> vertex-major: ``(V, B, C)``, or if ``cm`` ``(V, C, Bp)`` with zero
+        padding."""
+        x = np.asarray(x, dtype=np.float32)
+        if not cm:
+            return np.ascontiguousarray(x.transpose(1, 0, 2))
+        from meshseq.native import padded_chains
+
+        B, V, C = x.shape
+        out = np.zeros((V, C, padded_chains(B)), dtype=np.float32)
+        out[:, :, :B] = x.transpose(1, 2, 0)
+        return out
+
+    @staticmethod
+    def _from_vm(x: np.ndarray, n: int, cm: bool) -> np.ndarray:
+        """Vertex-major frames -> ``(n, V, C)`` (a view) of the first ``n`` chains."""
+        return x[:, :, :n].transpose(2, 0, 1) if cm else x.transpose(1, 0, 2)
 
     def _lstm_rows(self, weights: list, z: np.ndarray, h: np.ndarray, c: np.ndarray):
         """Layers of one LSTM for ``z`` ``(B, L)``, ``h``, ``c`` ``(K, B, L)`` -> ``(out, h', c')``."""
@@ -242,14 +304,18 @@ class NumpyNet:
         return (np.concatenate([p[0] for p in parts]),
                 (np.concatenate([p[1] for p in parts], 1), np.concatenate([p[2] for p in parts], 1)))
 
-    def _step_vm(self, state, x: np.ndarray, n_forward: int | None):
-        """``(state, x (V, B, C))`` -> ``(state', x + dX (V, B, C))``."""
-        mu = self._encode(x)
+    def _step_vm(self, state, x: np.ndarray, n_forward: int | None, cm: bool):
+        """``(state, x)`` -> ``(state', x + dX)`` on vertex-major frames, channel-major if ``cm``
+        (padded chains stay zero)."""
+        n = state[0].shape[1]
+        mu = self._encode(x, n, cm)
         out, state = self._lstm(mu, state, n_forward)
-        d = self._decode(out)
+        d = self._decode(out, cm)
         if self.scale is not None:
-            d *= self.scale
+            d *= self.scale[:, None] if cm else self.scale
         d += x
+        if cm and d.shape[-1] > n:
+            d[:, :, n:] = 0.0
         return state, d
 
     # -- public, batch-major (as BDLSTM) --------------------------------------------------------
@@ -263,25 +329,30 @@ class NumpyNet:
 
     def encode(self, x: np.ndarray) -> np.ndarray:
         """Frames ``(B, V, C)`` -> latent means ``mu`` ``(B, L)``."""
-        return self._encode(np.ascontiguousarray(np.asarray(x, dtype=np.float32).transpose(1, 0, 2)))
+        cm = self.channel_major(len(x))
+        return self._encode(self._to_vm(x, cm), len(x), cm)
 
     def decode(self, h: np.ndarray) -> np.ndarray:
         """LSTM outputs ``(B, L)`` -> frame changes ``dX`` ``(B, V, C)``."""
-        return self._decode(np.asarray(h, dtype=np.float32)).transpose(1, 0, 2)
+        cm = self.channel_major(len(h))
+        return self._from_vm(self._decode(np.asarray(h, dtype=np.float32), cm), len(h), cm)
 
     def step(self, state, x: np.ndarray, n_forward: int | None = None, sample: bool = False):
         """G(s, X) -> ``(s', X + dX)`` for frames ``(B, V, C)`` float32 (``sample``: not here)."""
         if sample:
             raise MeshseqError("drawing the VAE latent (sampled predictions) needs the torch model")
-        state, nxt = self._step_vm(state, np.ascontiguousarray(x.transpose(1, 0, 2), dtype=np.float32), n_forward)
-        return state, nxt.transpose(1, 0, 2)
+        cm = self.channel_major(len(x))
+        state, nxt = self._step_vm(state, self._to_vm(x, cm), n_forward, cm)
+        return state, self._from_vm(nxt, len(x), cm)
 
     def rollout(self, first: np.ndarray, steps: int, state, n_forward: int | None = None):
         """Free-running frames ``(B, steps + 1, V, C)`` from ``first`` ``(B, V, C)``; and the final state."""
-        x = np.ascontiguousarray(np.asarray(first, dtype=np.float32).transpose(1, 0, 2))
-        frames = np.empty((x.shape[1], steps + 1) + x.shape[::2], dtype=np.float32)
+        first = np.asarray(first, dtype=np.float32)
+        cm = self.channel_major(len(first))
+        x = self._to_vm(first, cm)
+        frames = np.empty((len(first), steps + 1) + first.shape[1:], dtype=np.float32)
         frames[:, 0] = first
         for t in range(steps):  # the time loop is the only Python loop
-            state, x = self._step_vm(state, x, n_forward)
-            frames[:, t + 1] = x.transpose(1, 0, 2)
+            state, x = self._step_vm(state, x, n_forward, cm)
+            frames[:, t + 1] = self._from_vm(x, len(first), cm)
         return frames, state
