@@ -111,6 +111,9 @@ def _load() -> ctypes.CDLL | None:
     p = ctypes.c_void_p
     f.argtypes = [p, p, p, p, p, ctypes.c_int64, p, p, p, ctypes.c_int64] + [ctypes.c_int] * 5
     f.restype = ctypes.c_int
+    t = lib.meshseq_transpose
+    t.argtypes = [p, ctypes.c_int64, p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int]
+    t.restype = None
     return lib
 
 
@@ -144,3 +147,14 @@ def conv(lib: ctypes.CDLL, x: np.ndarray, w_self: np.ndarray, w_ring: np.ndarray
         raise ValueError(f"the compiled mesh convolution takes at most {MAX_CHANNELS} channels and 8 or a multiple "
                          f"of 16 chains, got {C} -> {C_out} channels, {B} chains")
     return y
+
+
+def transpose(lib: ctypes.CDLL, a: np.ndarray, out: np.ndarray, threads: int = 0) -> np.ndarray:
+    """``out[...] = a.T`` for 2-D float32 ``a`` ``(rows, cols)`` and ``out`` ``(cols, rows)``, each with
+    unit stride along its last axis (any row stride: a column block of a wider array)."""
+    if a.dtype != np.float32 or out.dtype != np.float32 or a.strides[1] != 4 or out.strides[1] != 4 \
+            or out.shape != a.shape[::-1]:
+        raise ValueError(f"transpose: float32 rows of unit stride, (r, c) -> (c, r); got {a.shape} -> {out.shape}")
+    lib.meshseq_transpose(a.ctypes.data, a.strides[0] // 4, out.ctypes.data, out.strides[0] // 4, a.shape[0],
+                          a.shape[1], int(threads))
+    return out

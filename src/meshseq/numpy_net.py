@@ -256,24 +256,33 @@ class NumpyNet:
             y = self._conv(y, layer, k < K - 1, cm)
         return y
 
-    @staticmethod
-    def _to_vm(x: np.ndarray, cm: bool) -> np.ndarray:
+    def _to_vm(self, x: np.ndarray, cm: bool) -> np.ndarray:
         """Frames ``(B, V, C)`` -> vertex-major: ``(V, B, C)``, or if ``cm`` ``(V, C, Bp)`` with zero
         padding."""
         x = np.asarray(x, dtype=np.float32)
         if not cm:
             return np.ascontiguousarray(x.transpose(1, 0, 2))
-        from meshseq.native import padded_chains
+        from meshseq import native
 
         B, V, C = x.shape
-        out = np.zeros((V, C, padded_chains(B)), dtype=np.float32)
-        out[:, :, :B] = x.transpose(1, 2, 0)
+        out = np.zeros((V, C, native.padded_chains(B)), dtype=np.float32)
+        native.transpose(self._lib, np.ascontiguousarray(x).reshape(B, V * C), out.reshape(V * C, -1)[:, :B],
+                         self._threads)
         return out
 
     @staticmethod
     def _from_vm(x: np.ndarray, n: int, cm: bool) -> np.ndarray:
         """Vertex-major frames -> ``(n, V, C)`` (a view) of the first ``n`` chains."""
         return x[:, :, :n].transpose(2, 0, 1) if cm else x.transpose(1, 0, 2)
+
+    def _write_frames(self, x: np.ndarray, n: int, cm: bool, out: np.ndarray) -> None:
+        """Vertex-major frames of ``n`` chains into ``out`` ``(n, V*C)`` (rows of unit stride)."""
+        if not cm:
+            out[...] = x.transpose(1, 0, 2).reshape(n, -1)
+            return
+        from meshseq import native
+
+        native.transpose(self._lib, x.reshape(-1, x.shape[-1])[:, :n], out, self._threads)
 
     def _lstm_rows(self, weights: list, z: np.ndarray, h: np.ndarray, c: np.ndarray):
         """Layers of one LSTM for ``z`` ``(B, L)``, ``h``, ``c`` ``(K, B, L)`` -> ``(out, h', c')``."""
@@ -352,7 +361,8 @@ class NumpyNet:
         x = self._to_vm(first, cm)
         frames = np.empty((len(first), steps + 1) + first.shape[1:], dtype=np.float32)
         frames[:, 0] = first
+        rows = frames.reshape(len(first), steps + 1, -1)  # a view: frames is contiguous
         for t in range(steps):  # the time loop is the only Python loop
             state, x = self._step_vm(state, x, n_forward, cm)
-            frames[:, t + 1] = self._from_vm(x, len(first), cm)
+            self._write_frames(x, len(first), cm, rows[:, t + 1])
         return frames, state
