@@ -63,21 +63,40 @@ def score_block(model, vae, verts: np.ndarray, feats: np.ndarray, train_feats: n
                 lo: int, hi: int) -> dict:
     """Every figure of one held-out block ``[lo, hi)`` of one sequence; ``train_level``: the training
     frames' mean vertex motion per frame (``training_level``)."""
-    from meshseq.evaluate import completion_errors, feature_change, prediction_errors, prediction_starts
-    from meshseq.pace import pace_levels, pace_table, step_levels
-    from meshseq.plots import feature_change as relative_change
+    from meshseq.evaluate import completion_errors
+    from meshseq.pace import step_levels
 
     out = {"frames": [int(lo), int(hi)], "novelty": novelty(train_feats, feats[lo:hi]),
            "motion_level": float(np.mean(step_levels(verts[lo:hi])) / max(train_level, 1e-12)),
-           "prediction": {}, "completion": {}}
+           "prediction": prediction_scores(model, vae, verts, feats, lo, hi, PREDICTION), "completion": {}}
+    gaps = [g for g in GAPS if hi - lo >= g + 2]
+    out["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1)
+    out.update(motion_scores(model, verts, feats, train_level, lo, hi))
+    return out
+
+
+def prediction_scores(model, vae, verts: np.ndarray, feats: np.ndarray, lo: int, hi: int, methods) -> dict:
+    """``{"u1" / "u3": {method: {"centroid" / "rigid": {h: error}}}}`` of one block ``[lo, hi)``."""
+    from meshseq.evaluate import prediction_errors, prediction_starts
+
+    out = {}
     for u in (1, 3):
         horizons = [h for h in HORIZONS if len(prediction_starts(lo, hi, u, h))]  # a short block scores fewer
         if not horizons:
             continue
-        res = prediction_errors(model, verts, feats, lo, hi, u, horizons, list(PREDICTION), vae=vae)
-        out["prediction"][f"u{u}"] = {m: {k: r[k] for k in ("centroid", "rigid")} for m, r in res.items()}
-    gaps = [g for g in GAPS if hi - lo >= g + 2]
-    out["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1)
+        res = prediction_errors(model, verts, feats, lo, hi, u, horizons, list(methods), vae=vae)
+        out[f"u{u}"] = {m: {k: r[k] for k in ("centroid", "rigid")} for m, r in res.items()}
+    return out
+
+
+def motion_scores(model, verts: np.ndarray, feats: np.ndarray, train_level: float, lo: int, hi: int) -> dict:
+    """``motion_50`` (the feature change of 50 generated frames over the truth's) and ``pace``
+    (``pace.pace_table``, where the block is long enough) of one block ``[lo, hi)``."""
+    from meshseq.evaluate import feature_change, prediction_starts
+    from meshseq.pace import pace_levels, pace_table
+    from meshseq.plots import feature_change as relative_change
+
+    out = {}
     starts = prediction_starts(lo, hi, 1, 1)
     fc = feature_change(model, feats, starts[:: max(1, len(starts) // 8)], 1, 50, ["ours"])
     truth = float(relative_change(model.scaling.invert(feats[lo:hi].astype(np.float64))).mean())
@@ -117,6 +136,8 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     if record.exists():
         done = json.loads(record.read_text())
         if done.get("iteration") == args.iterations:
+            if args.rescore_prediction:
+                done = rescore_prediction(done, run, record, specs, args)
             return rescore_completion(done, run, record, args) if args.rescore_completion else done
     data = load_training_data(specs)
     config = TrainConfig(iterations=args.iterations, seed=args.seed, holdout_at=holdout_at, holdout=holdout,
@@ -166,6 +187,33 @@ def rescore_completion(done: dict, run: Path, record: Path, args) -> dict:
         block["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1)
         print(line(done["set"] + "@" + done["holdout_at"], block), flush=True)
     done["completion_command"] = "python benchmarks/generalize.py " + " ".join(args.argv)
+    record.write_text(json.dumps(done, indent=1))
+    return done
+
+
+def rescore_prediction(done: dict, run: Path, record: Path, specs: list[str], args) -> dict:
+    """A finished record with ours' prediction figures (``motion_50`` and ``pace`` too) made again by
+    today's code from the same checkpoint; the baselines' are left as recorded (their code did not
+    change; the VAE baseline would be trained again). The command is kept as ``prediction_command``."""
+    import meshseq
+    from meshseq import checkpoint as ckpt
+    from meshseq.data.windows import Split
+    from meshseq.io import load_sequence
+
+    model = meshseq.load(run)
+    if model.iteration != done["iteration"]:
+        raise SystemExit(f"{run}: the newest checkpoint is iteration {model.iteration}, the record {done['iteration']}")
+    meta = json.loads((ckpt.resolve(run) / "model.json").read_text())
+    train_level = training_level(specs, [Split.from_dict(d["split"]) for d in meta["datasets"]])
+    for block in done["blocks"]:
+        verts = load_sequence(block["sequence"]).vertices.astype(np.float64)
+        feats = model.features(verts)
+        lo, hi = block["frames"]
+        for u, methods in prediction_scores(model, None, verts, feats, lo, hi, ["ours"]).items():
+            block["prediction"][u]["ours"] = methods["ours"]
+        block.update(motion_scores(model, verts, feats, train_level, lo, hi))
+        print(line(done["set"] + "@" + done["holdout_at"], block), flush=True)
+    done["prediction_command"] = "python benchmarks/generalize.py " + " ".join(args.argv)
     record.write_text(json.dumps(done, indent=1))
     return done
 
@@ -245,6 +293,8 @@ def main(argv=None) -> None:
     p.add_argument("--table", nargs="*", default=None, help="print the Markdown table of these records")
     p.add_argument("--rescore-completion", action="store_true",
                    help="for finished records: make the completion figures again with today's code")
+    p.add_argument("--rescore-prediction", action="store_true",
+                   help="for finished records: make ours' prediction figures again with today's code")
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     if args.table is not None:

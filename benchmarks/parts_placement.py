@@ -42,11 +42,16 @@ def centred_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
 def score(model, vertices: np.ndarray, step: int = 4) -> dict:
     """Ours and zero velocity from 3 given frames, mean over starts, at ``HORIZONS`` (x 1e-4); on a
     model with placement channels also ``ours_true_placement``: ours' predicted features with the
-    truth's placement channels, reconstructed."""
+    truth's placement channels, reconstructed; and ``ours_rolled_out_placement``: ours with the
+    placement channels as rolled out (``synthesize.predict(..., continue_placement=False)``)."""
+    from meshseq import synthesize
+
     h = max(HORIZONS)
     placement = model.config.channels > 9
     feats = model.features(vertices) if placement else None
-    rows = {"ours": [], "zero_velocity": []} | ({"ours_true_placement": []} if placement else {})
+    rows = {"ours": [], "zero_velocity": []}
+    if placement:
+        rows |= {"ours_true_placement": [], "ours_rolled_out_placement": []}
     for s in range(0, len(vertices) - h - 3, step):
         truth = vertices[s + 3:s + 3 + h]
         pred = model.predict(vertices[s:s + 3], h)[3:]
@@ -56,7 +61,18 @@ def score(model, vertices: np.ndarray, step: int = 4) -> dict:
             f = model.features(pred)
             f[..., 9:12] = feats[s + 3:s + 3 + h, :, 9:12]
             rows["ours_true_placement"].append(centred_errors(model.vertices(f), truth))
+            given = feats[s:s + 3]
+            free = synthesize.predict(model, given, h, continue_placement=False)
+            out = synthesize.assemble_vertices(model, np.concatenate([given, free]), dict(enumerate(vertices[s:s + 3])))
+            rows["ours_rolled_out_placement"].append(centred_errors(out[3:], truth))
     return {m: [float(np.mean(r, 0)[k - 1] * 1e4) for k in HORIZONS] for m, r in rows.items()}
+
+
+def finished(run: str, iterations: int) -> bool:
+    """Whether ``run`` holds a checkpoint of ``iterations`` iterations."""
+    from meshseq import checkpoint as ckpt
+
+    return any(c.name.endswith(f"{iterations:08d}") for c in ckpt.list_checkpoints(run)) if Path(run).is_dir() else False
 
 
 def main() -> None:
@@ -87,9 +103,10 @@ def main() -> None:
     ref = seqs[0].vertices[0]
     feats = [acap.extract(s.vertices, s.faces, reference=ref, placement=args.placement == "on") for s in seqs]
     data = TrainingData([s.name for s in seqs], specs, feats, seqs[0].faces, ref, "temporal")
-    train(data, args.out, TrainConfig(iterations=args.iterations, seed=args.seed, holdout=0.0, eval_every=0,
-                                      placement_jitter=args.placement_jitter,
-                                      checkpoint_every=args.iterations), device="cpu", progress=False)
+    if not finished(args.out, args.iterations):  # a finished run is scored again with today's code
+        train(data, args.out, TrainConfig(iterations=args.iterations, seed=args.seed, holdout=0.0, eval_every=0,
+                                          placement_jitter=args.placement_jitter,
+                                          checkpoint_every=args.iterations), device="cpu", progress=False)
     model = meshseq.load(args.out)
     results = {}
     for spec in held:

@@ -78,6 +78,23 @@ def test_prediction_and_completion_place_the_parts(multi, trained):
     assert np.abs(got - truth).max() < 0.25 * bounding_box_diagonal(v)
 
 
+@pytest.mark.parametrize("given", [1, 3])
+def test_prediction_continues_the_given_placement_and_keeps_the_rolled_out_changes(multi, trained, given):
+    from meshseq import synthesize
+    from meshseq.api import load
+
+    seq, _ = multi
+    model = load(trained, backend="numpy")
+    g = model.features(seq.vertices[5:5 + given]).astype(np.float32)
+    free = synthesize.predict(model, g, 8, continue_placement=False, bound=None)
+    cont = synthesize.predict(model, g, 8, bound=None)
+    assert np.array_equal(cont[..., :9], free[..., :9])  # the ACAP channels as rolled out
+    step = g[-1, :, 9:] - g[-2, :, 9:] if given > 1 else 0.0
+    np.testing.assert_allclose(cont[0, :, 9:], g[-1, :, 9:] + step, atol=1e-6)  # no jump at the first frame
+    np.testing.assert_allclose(np.diff(cont[..., 9:], axis=0), np.diff(free[..., 9:], axis=0), atol=1e-6)
+    assert np.abs(free[0, :, 9:] - cont[0, :, 9:]).max() > 1e-4  # the roll-out alone does jump
+
+
 def test_tiny_and_degenerate_parts_are_placed_and_shaped_exactly():
     from meshseq.data.synthetic import multi_part
 

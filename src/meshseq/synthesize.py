@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from meshseq.acap.parts import PLACEMENT_CHANNELS as PLACEMENT
 from meshseq.errors import MeshseqError
 
 
@@ -65,8 +66,25 @@ def pace_factor(given_steps: np.ndarray, expected_steps: np.ndarray) -> np.ndarr
     return np.minimum(given_steps.mean(1) / np.maximum(expected_steps.mean(1), 1e-12), 1.0)
 
 
+def continued_placement(given: np.ndarray, generated: np.ndarray) -> np.ndarray:
+    """``generated`` ``(B, n, V, 12)`` with its placement channels moved, whole, so that the first
+    generated frame continues the given frames ``(B, U, V, 12)``: the last given placement plus the
+    given frames' last step (none with one given frame). The roll-out's later changes are kept.
+
+    A part's place depends on the body it sits on; on a subject the model has not seen, the first
+    step jumps toward where the training subjects carry it. Moving the whole trajectory removes
+    that jump and keeps the motion the model predicts.
+    """
+    last = given[:, -1, :, PLACEMENT]
+    step = last - given[:, -2, :, PLACEMENT] if given.shape[1] > 1 else 0.0
+    out = generated.copy()
+    out[..., PLACEMENT] += (last + step - generated[:, 0, :, PLACEMENT])[:, None]
+    return out
+
+
 def predict(model, given, n_frames: int, state=None, sample: bool = False,
-            bound: float | None = FEATURE_BOUND, pace: str = "given") -> np.ndarray:
+            bound: float | None = FEATURE_BOUND, pace: str = "given",
+            continue_placement: bool = True) -> np.ndarray:
     """Generate ``n_frames`` frames after the given ones.
 
     Args:
@@ -80,6 +98,8 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         pace: ``given`` (default): with U >= 2, every generated step is scaled by
             ``pace_factor`` (a pose held still stays still, a slowing motion stays slow);
             ``model``: the roll-out as trained. One given frame says nothing of the pace.
+        continue_placement: on a mesh of several parts (12 channels), ``continued_placement``
+            (no effect on 9 channels); False: the placement channels as rolled out.
     Returns:
         ``(n_frames, V, 9)`` (or ``(B, n_frames, V, 9)``) generated scaled features.
     """
@@ -112,6 +132,10 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         if bound is not None:
             cur = np.clip(cur, -bound, bound)
         out[:, t] = cur
+    if continue_placement and x.shape[-1] == 12 and n_frames > 0:
+        out = continued_placement(x, out)
+        if bound is not None:
+            np.clip(out, -bound, bound, out=out)
     return out[0] if single else out
 
 

@@ -24,6 +24,8 @@ from meshseq.mesh import Topology
 
 #: The channel counts of features: the 9 ACAP channels alone, or with the 3 placement channels.
 CHANNEL_COUNTS = (9, 12)
+#: Where the placement channels sit in a 12-channel frame.
+PLACEMENT_CHANNELS = slice(9, 12)
 
 
 def relative_centroids(vertices: np.ndarray, topology: Topology) -> np.ndarray:
