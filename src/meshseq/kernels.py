@@ -61,7 +61,7 @@ from meshseq.native import cpu_signature
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / name for name in ("mesh_conv.cpp", "fc.cpp", "frame_errors.cpp", "lstm.cpp")]
-_HEADERS = [_CSRC / "simd.h", _CSRC / "conv_forward.h"]  # included by the sources; torch's build cache hashes only sources and flags
+_HEADERS = [_CSRC / "simd.h", _CSRC / "conv_forward.h", _CSRC / "fc_forward.h"]  # included by the sources; torch's build cache hashes only sources and flags
 _lock = threading.Lock()
 _cpu_kernels: bool | None = None  # None: not tried yet
 

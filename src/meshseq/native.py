@@ -3,7 +3,7 @@
 ``predict`` and ``complete`` run the generator in numpy (``meshseq.numpy_net``) so that a command
 does not pay torch's import. Their mesh-conv layers are most of a diverse completion's time in
 numpy (a sparse product, two GEMMs of 9 columns, the bias and tanh: about ten passes over the
-frames); ``csrc/infer_conv.cpp`` does a layer in one pass, as the training kernel does. It is a
+frames); ``csrc/inference.cpp`` does a layer in one pass, as the training kernel does. It is a
 plain C function: built on first use with the system's C++ compiler (``CXX``, else ``c++``; about
 5 s) into ``MESHSEQ_KERNEL_DIR`` (default ``~/.cache/meshseq``), one build per source and CPU
 kind, and called through ``ctypes``.
@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
-_SOURCE = _CSRC / "infer_conv.cpp"
-_HEADERS = [_CSRC / "simd.h", _CSRC / "conv_forward.h"]
+_SOURCE = _CSRC / "inference.cpp"
+_HEADERS = [_CSRC / "simd.h", _CSRC / "conv_forward.h", _CSRC / "fc_forward.h"]
 _FLAGS = ["-O3", "-march=native", "-shared", "-fPIC", "-std=c++17", "-pthread"]
 #: the most channels a layer of the compiled convolution takes (``csrc/conv_forward.h``)
 MAX_CHANNELS = 16
@@ -61,7 +61,7 @@ def build_path() -> Path:
     """Where this source, these flags and this kind of CPU have their build."""
     root = os.environ.get("MESHSEQ_KERNEL_DIR") or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "meshseq"
     digest = hashlib.sha1(b"".join(p.read_bytes() for p in [_SOURCE, *_HEADERS]) + " ".join(_FLAGS).encode())
-    return Path(root) / f"infer_conv-{digest.hexdigest()[:12]}-{cpu_signature()}.so"
+    return Path(root) / f"inference-{digest.hexdigest()[:12]}-{cpu_signature()}.so"
 
 
 def _build(target: Path) -> None:
@@ -111,6 +111,8 @@ def _load() -> ctypes.CDLL | None:
     p = ctypes.c_void_p
     f.argtypes = [p, p, p, p, p, ctypes.c_int64, p, p, p, ctypes.c_int64] + [ctypes.c_int] * 5
     f.restype = ctypes.c_int
+    lib.meshseq_fc_wx.argtypes = [p] * 5 + [ctypes.c_int64, ctypes.c_int64, ctypes.c_int, ctypes.c_int]
+    lib.meshseq_fc_wx.restype = None
     t = lib.meshseq_transpose
     t.argtypes = [p, ctypes.c_int64, p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int]
     t.restype = None
@@ -157,4 +159,29 @@ def transpose(lib: ctypes.CDLL, a: np.ndarray, out: np.ndarray, threads: int = 0
         raise ValueError(f"transpose: float32 rows of unit stride, (r, c) -> (c, r); got {a.shape} -> {out.shape}")
     lib.meshseq_transpose(a.ctypes.data, a.strides[0] // 4, out.ctypes.data, out.strides[0] // 4, a.shape[0],
                           a.shape[1], int(threads))
+    return out
+
+
+#: columns of the FC weight per partial sum of ``fc_wx`` (``csrc/fc_forward.h``'s NCHUNK_COLS)
+FC_CHUNK = 2048
+
+
+def _check_fc(weight: np.ndarray, cols: np.ndarray, rows: int) -> None:
+    if weight.dtype != np.float32 or cols.dtype != np.float32 or not (weight.flags.c_contiguous
+                                                                       and cols.flags.c_contiguous):
+        raise ValueError("fc: contiguous float32 arrays")
+    if cols.ndim != 2 or cols.shape[0] != rows or cols.shape[1] % 8:
+        raise ValueError(f"fc: columns ({rows}, a multiple of 8) expected, got {cols.shape}")
+
+
+def fc_wx(lib: ctypes.CDLL, weight: np.ndarray, x: np.ndarray, bias: np.ndarray, threads: int = 0) -> np.ndarray:
+    """``W x + b`` ``(L, B)`` for the FC weight ``W`` ``(L, N)`` and columns ``x`` ``(N, B)`` (B a multiple of 8):
+    one stream over ``W``, each weight broadcast against a SIMD vector of the columns."""
+    L, N = weight.shape
+    _check_fc(weight, x, N)
+    B = x.shape[1]
+    out = np.empty((L, B), dtype=np.float32)
+    partial = np.empty(((N + FC_CHUNK - 1) // FC_CHUNK, L, B), dtype=np.float32)
+    lib.meshseq_fc_wx(weight.ctypes.data, x.ctypes.data, np.ascontiguousarray(bias, np.float32).ctypes.data,
+                      out.ctypes.data, partial.ctypes.data, L, N, B, int(threads))
     return out

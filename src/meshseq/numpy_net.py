@@ -236,10 +236,11 @@ class NumpyNet:
             x = self._conv(x, layer, True, cm)
         if not cm:
             V, B, C = x.shape
-            cols = np.ascontiguousarray(x.transpose(1, 0, 2)).reshape(B, V * C).T
-        else:
-            cols = x.reshape(-1, x.shape[-1])  # (V*C, Bp): the FC's columns as they lie
-        e = self._fc_encode(cols)[:n]
+            e = self._fc_encode(np.ascontiguousarray(x.transpose(1, 0, 2)).reshape(B, V * C).T)[:n]
+        else:  # (V*C, Bp): the FC's columns as they lie
+            from meshseq import native
+
+            e = native.fc_wx(self._lib, self.fc_weight, x.reshape(-1, x.shape[-1]), self.fc_bias, self._threads).T[:n]
         mu = e @ self.mu[0]
         mu += self.mu[1]
         if self.config.mu_max is not None:

@@ -1,5 +1,5 @@
 // The forward of one mesh-convolution layer over vertex-major frames (V, C, B): the arithmetic
-// shared by the training kernel (mesh_conv.cpp, with torch) and the inference one (infer_conv.cpp,
+// shared by the training kernel (mesh_conv.cpp, with torch) and the inference one (inference.cpp,
 // without). See mesh_conv.cpp for what it computes and why it is laid out so.
 //
 // The including file defines, before including this, in an anonymous namespace:

@@ -1,7 +1,8 @@
-// One mesh-convolution layer for inference (CPU, float32), without torch: a plain C function that
-// numpy_net calls through ctypes (meshseq/native.py builds it with the system's C++ compiler on
-// first use). The arithmetic is the training kernel's forward (conv_forward.h, on the same
-// vertex-major (V, C, B) frames; see mesh_conv.cpp):
+// The numpy roll-out's compiled pieces (CPU, float32), without torch: plain C functions that
+// numpy_net calls through ctypes (meshseq/native.py builds this file with the system's C++ compiler
+// on first use). Their arithmetic is the training kernels' forward (conv_forward.h, fc_forward.h).
+//
+// meshseq_conv_vcb: one mesh-convolution layer on vertex-major (V, C, B) frames (see mesh_conv.cpp):
 //
 //   y = act(Ws x + Wr (A x) + b)        x (V, Ci, B), y (V, Co, B)
 //
@@ -41,6 +42,7 @@ void parallel_for(int64_t begin, int64_t end, int64_t grain, const F& f) {
 }  // namespace
 
 #include "conv_forward.h"
+#include "fc_forward.h"
 
 extern "C" {
 
@@ -71,6 +73,21 @@ void meshseq_transpose(const float* a, int64_t lda, float* b, int64_t ldb, int64
         for (int64_t j = j0; j < std::min(cols, j0 + TILE); ++j)
           for (int64_t i = i0; i < std::min(rows, i0 + TILE); ++i) b[j * ldb + i] = a[i * lda + j];
   });
+}
+
+// out (L, B) = W (L, N) X (N, B) + bias (L); partial: (ceil(N / NCHUNK_COLS), L, B) scratch. B a multiple
+// of 8. The chunks' partial sums are added in order (fc.cpp's wx_product).
+void meshseq_fc_wx(const float* w, const float* x, const float* bias, float* out, float* partial, int64_t L, int64_t N,
+                   int B, int threads) {
+  n_threads = threads > 0 ? threads : 1;
+  if (B % 16 == 0) wx<v16, 16>(w, x, partial, nullptr, L, N, B);
+  else wx<v8, 8>(w, x, partial, nullptr, L, N, B);
+  const int64_t nchunks = (N + NCHUNK_COLS - 1) / NCHUNK_COLS;
+  for (int64_t i = 0; i < L * B; ++i) out[i] = bias[i / B];
+  for (int64_t k = 0; k < nchunks; ++k) {
+    const float* pk = partial + k * L * B;
+    for (int64_t i = 0; i < L * B; ++i) out[i] += pk[i];
+  }
 }
 
 }  // extern "C"
