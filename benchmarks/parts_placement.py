@@ -11,6 +11,7 @@ and zero velocity, over starts every 4 frames; with placement channels also ours
 placement channels swapped into its predicted features (how much of ours' error the parts' placement
 explains); writes OUT.json. ``--validation-subject S`` also holds out subject S's sequences and scores
 them first: choose between recipes on S, then confirm on the held-out subject.
+``--placement anchor`` measures each part's placement from its anchor vertex (``TrainConfig.placement``).
 ``--placement-jitter J`` trains with ``TrainConfig.placement_jitter = J``:
 
     python benchmarks/parts_placement.py bodies1k_parts.h5 --validation-subject female_old \
@@ -59,7 +60,7 @@ def score(model, vertices: np.ndarray, step: int = 4) -> dict:
         rows["zero_velocity"].append(centred_errors(np.repeat(vertices[s + 2][None], h, 0), truth))
         if placement:
             f = model.features(pred)
-            f[..., 9:12] = feats[s + 3:s + 3 + h, :, 9:12]
+            f[..., 9:12] = feats[s + 3:s + 3 + h, :, 9:12]  # (the model's own placement mode)
             rows["ours_true_placement"].append(centred_errors(model.vertices(f), truth))
             given = feats[s:s + 3]
             free = synthesize.predict(model, given, h, continue_placement=False)
@@ -78,7 +79,9 @@ def finished(run: str, iterations: int) -> bool:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("bodies", help="a meshseq make-bodies HDF5 (with or without --parts)")
-    p.add_argument("--placement", choices=("on", "off"), default="on")
+    p.add_argument("--placement", choices=("on", "off", "anchor"), default="on",
+                   help="on: placement channels from the centroid (TrainConfig.placement centroid); anchor: from "
+                        "each part's anchor vertex; off: none")
     p.add_argument("--iterations", type=int, default=600)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--hold-subject", default="male_slim")
@@ -101,11 +104,13 @@ def main() -> None:
         specs, held = [s for s in specs if s not in val], val + held
     seqs = [load_sequence(s) for s in specs]
     ref = seqs[0].vertices[0]
-    feats = [acap.extract(s.vertices, s.faces, reference=ref, placement=args.placement == "on") for s in seqs]
-    data = TrainingData([s.name for s in seqs], specs, feats, seqs[0].faces, ref, "temporal")
+    mode = "anchor" if args.placement == "anchor" else "centroid"
+    feats = [acap.extract(s.vertices, s.faces, reference=ref, placement=args.placement != "off", placement_mode=mode)
+             for s in seqs]
+    data = TrainingData([s.name for s in seqs], specs, feats, seqs[0].faces, ref, "temporal", mode)
     if not finished(args.out, args.iterations):  # a finished run is scored again with today's code
         train(data, args.out, TrainConfig(iterations=args.iterations, seed=args.seed, holdout=0.0, eval_every=0,
-                                          placement_jitter=args.placement_jitter,
+                                          placement_jitter=args.placement_jitter, placement=mode,
                                           checkpoint_every=args.iterations), device="cpu", progress=False)
     model = meshseq.load(args.out)
     results = {}

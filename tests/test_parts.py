@@ -273,3 +273,65 @@ def test_placement_jitter_keeps_l_vertex_against_the_unshifted_truth_with_or_wit
 
     cached, reconstructed = vertex_term(rows=rows), vertex_term()
     assert torch.isclose(cached, reconstructed, rtol=1e-4)
+
+
+def test_anchor_placement_measures_each_part_from_its_body_vertex_and_comes_back_exactly(multi):
+    """``anchor`` placement: the largest part's channels are zero, a part's channels are its centroid's
+    gap to its anchor vertex (minus the reference's), and both reconstructions put the parts back
+    as well as the centroid channels do."""
+    import torch
+
+    from meshseq.acap.parts import body_part, part_anchors, placement_channels
+    from meshseq.acap.torch_reconstruct import TorchReconstructor
+
+    seq, _ = multi
+    v = seq.vertices
+    topo = Topology.from_faces(seq.faces, seq.n_vertices)
+    lab, body = topo.component_labels, body_part(topo)
+    ch = placement_channels(v, topo, v[0], "anchor")
+    assert np.array_equal(ch[:, lab == body], np.zeros_like(ch[:, lab == body]))
+    anchors = part_anchors(v[0], topo)
+    assert (lab[anchors] == body).all()
+    c = next(k for k in range(topo.n_components) if k != body)
+    gap = v[:, lab == c].mean(1) - v[:, anchors[c]]
+    np.testing.assert_allclose(ch[:, lab == c][:, 0], gap - gap[0], atol=1e-12)
+    centred = v - v.mean(axis=1, keepdims=True)
+    errors = {}
+    for mode in ("centroid", "anchor"):
+        rec = Reconstructor(v[0], seq.faces, placement=mode)
+        f = extract(v, seq.faces, placement=True, placement_mode=mode)
+        out = rec.solve(f)
+        errors[mode] = _rel_error(out, centred).mean()
+        back = TorchReconstructor(rec, dtype=torch.float64)(torch.from_numpy(f)).numpy()
+        np.testing.assert_allclose(back, out, atol=1e-9)
+    assert errors["anchor"] <= 1.5 * errors["centroid"]
+    with pytest.raises(ValueError, match="placement mode"):
+        Reconstructor(v[0], seq.faces, placement="nearest")
+
+
+def test_a_model_trained_with_anchor_placement_reads_and_writes_its_own_channels(multi, tmp_path):
+    from meshseq.api import load
+    from meshseq.errors import MeshseqError
+    from meshseq.train import TrainConfig, load_training_data, train
+
+    from conftest import torch_threads
+
+    with pytest.raises(MeshseqError, match="placement"):
+        TrainConfig(placement="nearest")
+    config = TrainConfig(iterations=3, window=12, batch=4, eval_every=0, checkpoint_every=0, log_every=0)
+    with pytest.raises(MeshseqError, match="placement anchor"):  # data extracted the other way
+        train(load_training_data([str(multi[1])]), tmp_path / "mismatch",
+              TrainConfig(**(config.to_dict() | {"placement": "anchor"})), device="cpu", progress=False,
+              log=lambda m: None)
+    with torch_threads(1):
+        train(load_training_data([str(multi[1])], placement="anchor"), tmp_path / "run",
+              TrainConfig(**(config.to_dict() | {"placement": "anchor"})),
+              model_options={"latent": 16, "lstm_layers": 2}, device="cpu", progress=False, log=lambda m: None)
+    model = load(tmp_path / "run")
+    assert model.placement == "anchor" and model.meta["features"]["placement"] == "anchor"
+    v = multi[0].vertices
+    f = model.features(v)
+    np.testing.assert_allclose(model.scaling.invert(f)[..., 9:],
+                               extract(v, multi[0].faces, placement=True, placement_mode="anchor")[..., 9:], atol=1e-5)
+    through = model.vertices(f)
+    assert _rel_error(through, v - v.mean(axis=1, keepdims=True)).mean() < 0.05

@@ -82,6 +82,8 @@ class Model:
         self.reference = reference
         self.faces = faces
         self.scaling = Scaling.from_dict(meta["scaling"])
+        # what a multi-part model's placement channels measure from (acap.parts.PLACEMENT_MODES)
+        self.placement = meta.get("features", {}).get("placement", "centroid")
         self._reconstructor = reconstructor  # an acap.Reconstructor of (reference, faces); made when first needed
 
     def __repr__(self) -> str:
@@ -113,7 +115,7 @@ class Model:
             raise MeshseqError(f"vertices have {v.shape[1]} vertices, the model expects {self.config.n_vertices}")
         consistency = self.meta.get("features", {}).get("consistency", "temporal")
         f = acap.extract(v, self.faces, reference=self.reference, consistency=consistency,
-                         placement=self.config.channels > 9)
+                         placement=self.config.channels > 9, placement_mode=self.placement)
         return self.scaling.apply(f).astype(np.float32)
 
     def vertices(self, x) -> np.ndarray:
@@ -126,7 +128,7 @@ class Model:
         from meshseq import acap
 
         if self._reconstructor is None:
-            self._reconstructor = acap.Reconstructor(self.reference, self.faces)
+            self._reconstructor = acap.Reconstructor(self.reference, self.faces, placement=self.placement)
         x = x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)  # (a torch tensor)
         _check_finite(x, "features")
         v = self._reconstructor.solve(x, scaling=self.scaling)

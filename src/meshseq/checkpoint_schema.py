@@ -142,7 +142,7 @@ def model_meta_schema() -> dict:
         "format": str, "format_version": int, "iteration": int, "sha256": str,
         "model": config_schema(ModelConfig), "train": config_schema(TrainConfig),
         "scaling": _SCALING, "topology": _TOPOLOGY, "datasets": [_DATASET],
-        "features": Opt({"consistency": Opt(str), "reference": Opt(str)}),
+        "features": Opt({"consistency": Opt(str), "reference": Opt(str), "placement": Opt(str)}),
         "validation": Opt({"error": float, "iteration": int}),
     }
 
@@ -194,6 +194,9 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
     consistency = meta.get("features", {}).get("consistency", "temporal")
     if consistency not in ("temporal", "spatial"):
         raise CheckpointError(file, "features.consistency", f"{consistency!r}: expected temporal or spatial")
+    placement = meta.get("features", {}).get("placement", "centroid")
+    if placement not in ("centroid", "anchor"):  # acap.parts.PLACEMENT_MODES
+        raise CheckpointError(file, "features.placement", f"{placement!r}: expected centroid or anchor")
 
 
 def _check_iteration(meta: dict, file, iteration: int | None) -> None:

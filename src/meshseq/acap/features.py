@@ -111,6 +111,7 @@ def extract(
     exact: bool = False,
     threads: int | None = None,
     placement: bool | None = None,
+    placement_mode: str = "centroid",
 ) -> np.ndarray:
     """ACAP features ``(T, V, 9)`` of a sequence ``vertices (T, V, 3)`` sharing ``faces (F, 3)``.
 
@@ -128,6 +129,7 @@ def extract(
             depend on it.
         placement: append the three placement channels of :mod:`meshseq.acap.parts`, making the
             features ``(T, V, 12)``; default: when the mesh has several connected components.
+        placement_mode: what they measure each part from (``acap.parts.PLACEMENT_MODES``).
     """
     v = np.asarray(vertices, dtype=np.float64)
     if consistency not in CONSISTENCY_MODES:
@@ -143,7 +145,7 @@ def extract(
     else:
         feats = _pack_features(lambda frames: op(v[frames]), len(v), topo, consistency, threads)
     if topo.n_components > 1 if placement is None else placement:
-        feats = np.concatenate([feats, placement_channels(v, topo, ref)], axis=-1)
+        feats = np.concatenate([feats, placement_channels(v, topo, ref, placement_mode)], axis=-1)
     return feats
 
 

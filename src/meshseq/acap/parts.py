@@ -34,10 +34,59 @@ def relative_centroids(vertices: np.ndarray, topology: Topology) -> np.ndarray:
     return component_centroids(v, topology) - v.mean(axis=1, keepdims=True)
 
 
-def placement_channels(vertices: np.ndarray, topology: Topology, reference: np.ndarray) -> np.ndarray:
+#: What a part's placement is measured from (``placement_channels``): ``centroid``, the whole mesh's
+#: centroid; ``anchor``, the vertex of the largest part nearest the part in the reference (the
+#: largest part's own channels are zero). A part that rides on the body keeps nearly the same offset
+#: from its anchor whatever the body does, where its offset from the centroid moves with every limb.
+PLACEMENT_MODES = ("centroid", "anchor")
+
+
+def placement_channels(vertices: np.ndarray, topology: Topology, reference: np.ndarray,
+                       mode: str = "centroid") -> np.ndarray:
     """Placement channels ``(T, V, 3)`` of ``vertices (T, V, 3)`` against ``reference (V, 3)``."""
-    d = relative_centroids(vertices, topology) - relative_centroids(np.asarray(reference)[None], topology)
+    d = part_gaps(vertices, topology, reference, mode) - part_gaps(np.asarray(reference)[None], topology, reference, mode)
     return d[:, topology.component_labels]
+
+
+def part_gaps(vertices: np.ndarray, topology: Topology, reference: np.ndarray, mode: str) -> np.ndarray:
+    """Each part's centroid minus what ``mode`` measures it from, ``(T, C, 3)`` (zero for the largest
+    part under ``anchor``)."""
+    if mode == "centroid":
+        return relative_centroids(vertices, topology)
+    if mode != "anchor":
+        raise ValueError(f"unknown placement mode {mode!r}; expected one of {PLACEMENT_MODES}")
+    v = np.asarray(vertices, dtype=np.float64)
+    anchors = part_anchors(reference, topology)
+    gaps = component_centroids(v, topology) - v[:, anchors]
+    gaps[:, body_part(topology)] = 0.0
+    return gaps
+
+
+def body_part(topology: Topology) -> int:
+    """The part with the most vertices (the first of them on a tie)."""
+    return int(np.argmax(np.bincount(topology.component_labels, minlength=topology.n_components)))
+
+
+def part_anchors(reference: np.ndarray, topology: Topology) -> np.ndarray:
+    """``(C,)``: each part's anchor, the vertex of the largest part nearest the part's centroid in
+    ``reference`` (the largest part's own: its vertex nearest its centroid)."""
+    q = np.asarray(reference, dtype=np.float64)
+    body = np.flatnonzero(topology.component_labels == body_part(topology))
+    cents = component_centroids(q[None], topology)[0]  # (C, 3)
+    d2 = ((cents[:, None, :] - q[None, body]) ** 2).sum(-1)  # (C, |body|)
+    return body[np.argmin(d2, axis=1)]
+
+
+def anchored_shifts(vertices: np.ndarray, channels: np.ndarray, topology: Topology, reference: np.ndarray) -> np.ndarray:
+    """``(T, C, 3)``: how far to move each part of ``vertices (T, V, 3)`` (each part solved up to a
+    translation) so that it sits where ``anchor`` placement channels ``(T, V, 3)`` put it: its centroid
+    at its anchor plus its gap (the channels' mean over the part plus the reference's gap). The
+    largest part stays."""
+    v = np.asarray(vertices, dtype=np.float64)
+    gap = part_gaps(np.asarray(reference)[None], topology, reference, "anchor") + component_centroids(channels, topology)
+    shift = v[:, part_anchors(reference, topology)] + gap - component_centroids(v, topology)
+    shift[:, body_part(topology)] = 0.0
+    return shift
 
 
 def offsets_from_channels(channels: np.ndarray, topology: Topology, reference: np.ndarray) -> np.ndarray:

@@ -21,7 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from meshseq.acap.features import features_to_gradients, map_frame_chunks
-from meshseq.acap.parts import component_centroids, component_offsets, offsets_from_channels
+from meshseq.acap.parts import (PLACEMENT_MODES, anchored_shifts, component_centroids, component_offsets,
+                                offsets_from_channels)
 from meshseq.acap.operators import ExactEncoder, FactoredMatrix, _free_vertices, _laplacian, _rhs_operator
 from meshseq.align import place
 from meshseq.mesh import Topology, cotangent_weights
@@ -35,9 +36,14 @@ class Reconstructor:
     Args:
         reference: ``(V, 3)`` reference vertices (the rest shape the features were taken against).
         faces: ``(F, 3)`` triangles.
+        placement: what the placement channels of 12-channel features measure each part from
+            (``acap.parts.PLACEMENT_MODES``).
     """
 
-    def __init__(self, reference: np.ndarray, faces: np.ndarray):
+    def __init__(self, reference: np.ndarray, faces: np.ndarray, placement: str = "centroid"):
+        if placement not in PLACEMENT_MODES:
+            raise ValueError(f"unknown placement mode {placement!r}; expected one of {PLACEMENT_MODES}")
+        self.placement = placement
         q = np.ascontiguousarray(reference, dtype=np.float64)
         topo = Topology.from_faces(faces, q.shape[0])
         self.topology = topo
@@ -81,8 +87,9 @@ class Reconstructor:
         g = np.asarray(gradients, dtype=np.float64)
         return self._solve_rhs(lambda frames: self.rhs(g[frames]), len(g), offsets, target, rigid)
 
-    def _solve_rhs(self, rhs_of, n_frames: int, offsets, target, rigid) -> np.ndarray:
-        """Solve for right-hand sides ``rhs_of(slice) -> (t, V, 3)``, built a chunk of frames at a time."""
+    def _solve_rhs(self, rhs_of, n_frames: int, offsets, target, rigid, anchored=None) -> np.ndarray:
+        """Solve for right-hand sides ``rhs_of(slice) -> (t, V, 3)``, built a chunk of frames at a time;
+        ``anchored``: ``anchor`` placement channels ``(T, V, 3)`` that place the parts instead of ``offsets``."""
         n = self.topology.n_vertices
         b = np.empty((n, n_frames, 3))  # vertex-major: one multi-column solve for all frames
 
@@ -94,7 +101,10 @@ class Reconstructor:
         x = np.zeros((n, 3 * n_frames))
         x[self.free] = self._factor.solve(bv[self.free])
         verts = x.reshape(n, n_frames, 3).transpose(1, 0, 2)
-        verts = self._place_components(verts, offsets)
+        if anchored is not None:
+            verts = verts + anchored_shifts(verts, anchored, self.topology, self.reference)[:, self.topology.component_labels]
+        else:
+            verts = self._place_components(verts, offsets)
         return place(verts, target, rigid=rigid)
 
     def solve(
@@ -115,15 +125,17 @@ class Reconstructor:
         f = np.asarray(features, dtype=np.float64) if scaling is None else np.asarray(features)
         single = f.ndim == 2
         f = f[None] if single else f
+        place = None
         if offsets is None and f.shape[-1] > 9:
             place = f[..., 9:12] if scaling is None else scaling.channels(slice(9, 12)).invert(f[..., 9:12])
-            offsets = offsets_from_channels(place, self.topology, self.reference)
+            if self.placement == "centroid":
+                offsets, place = offsets_from_channels(place, self.topology, self.reference), None
 
         def unscaled(frames: slice) -> np.ndarray:
             return f[frames] if scaling is None else scaling.invert(f[frames])
 
         out = self._solve_rhs(
-            lambda frames: self.rhs(features_to_gradients(unscaled(frames))), len(f), offsets, target, rigid
+            lambda frames: self.rhs(features_to_gradients(unscaled(frames))), len(f), offsets, target, rigid, place
         )
         return out[0] if single else out
 

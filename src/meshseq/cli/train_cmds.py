@@ -90,10 +90,11 @@ def _train(args) -> int:
 
         torch.set_num_threads(args.threads)
     ModelConfig.check_options(model_options)  # every option is checked before the data is loaded
-    consistency = config.consistency
+    consistency, placement = config.consistency, config.placement
     if args.resume and not args.force:  # features as the run was trained on (its stored options)
-        consistency = resume_point(out).meta["train"]["consistency"]
-    data = load_training_data(args.data, consistency=consistency)
+        stored = resume_point(out).meta["train"]
+        consistency, placement = stored["consistency"], stored.get("placement", "centroid")
+    data = load_training_data(args.data, consistency=consistency, placement=placement)
     created = not out.exists()
     try:
         result = train(data, out, config, model_options, device=args.device, resume=args.resume,

@@ -58,7 +58,7 @@ LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "
                          "mu_max": None, "feedback_grad": "full", "tempo_augment": 0.0,
                          "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0, "validation": 0.0,
                          "speed_augment": 1.0, "window_fit": "none",
-                         "placement_jitter": 0.0}
+                         "placement_jitter": 0.0, "placement": "centroid"}
 
 
 def is_positive_integer(x) -> bool:
@@ -94,6 +94,9 @@ class TrainConfig:
         fits) [``none``: the window as given]. placement_jitter J (0.1 [0]): on a mesh of several
         parts, shift each part's placement channels in every training window by a random offset
         (normal, std J in scaled units, one per part and window; ``losses.jittered_placement``).
+        placement (``centroid``): what a part's placement channels measure it from
+        (``acap.parts.PLACEMENT_MODES``: the mesh's centroid, or ``anchor``, its nearest vertex of
+        the largest part).
 
     Loss (``meshseq.training.losses``):
         w_rec, w_bd, w_kl, w_l2 (1, 0.5, 0.1, 0 [0.1]): weights of L_rec, L_bd, L_KL, L_2 (the sum
@@ -141,6 +144,7 @@ class TrainConfig:
     speed_augment: float = 1.0
     tempo_augment: float = 0.0
     placement_jitter: float = 0.1
+    placement: str = "centroid"
     scaling: str = "two-group"
     consistency: str = "temporal"
     given: int = 1
@@ -187,6 +191,10 @@ class TrainConfig:
             raise MeshseqError(f"speed_augment {self.speed_augment!r}: expected a number >= 1 (1 = off)")
         if not (is_finite_number(self.tempo_augment) and 0 <= self.tempo_augment <= 1):
             raise MeshseqError(f"tempo_augment {self.tempo_augment!r}: expected a share in [0, 1] (0 = off)")
+        from meshseq.acap.parts import PLACEMENT_MODES
+
+        if self.placement not in PLACEMENT_MODES:
+            raise MeshseqError(f"placement {self.placement!r}: expected one of {', '.join(PLACEMENT_MODES)}")
         if not (is_finite_number(self.placement_jitter) and self.placement_jitter >= 0):
             raise MeshseqError(f"placement_jitter {self.placement_jitter!r}: expected a number >= 0 (0 = off)")
         if self.tempo_augment > 0 and self.speed_augment > 1:

@@ -27,13 +27,14 @@ class TrainingData:
     faces: np.ndarray
     reference: np.ndarray
     consistency: str = "temporal"  # the rotation consistency the features were extracted with
+    placement: str = "centroid"  # what the placement channels (several parts) measure from: acap.parts
 
     @property
     def n_vertices(self) -> int:
         return int(self.reference.shape[0])
 
 
-def load_training_data(specs: list[str], consistency: str = "temporal") -> TrainingData:
+def load_training_data(specs: list[str], consistency: str = "temporal", placement: str = "centroid") -> TrainingData:
     """Load sequences (``meshseq.io.load_sequence``) and extract features against one reference.
 
     MeshseqError if the data sets do not share one connectivity.
@@ -59,8 +60,10 @@ def load_training_data(specs: list[str], consistency: str = "temporal") -> Train
     from meshseq.mesh import Topology
 
     check_reference_parts(reference, Topology.from_faces(first.faces, first.n_vertices), f"{specs[0]} frame 0")
-    feats = [acap.extract(s.vertices, s.faces, reference=reference, consistency=consistency) for s in seqs]
-    return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference, consistency)
+    feats = [acap.extract(s.vertices, s.faces, reference=reference, consistency=consistency, placement_mode=placement)
+             for s in seqs]
+    return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference, consistency,
+                        placement)
 
 
 def step_spread(scaled: list[np.ndarray], splits: list[Split], stride: int = 1) -> np.ndarray:

@@ -216,6 +216,9 @@ class _Setup:
             stored = f"{found.folder} was trained on" if found is not None else "--consistency asks for"
             raise MeshseqError(f"{stored} {config.consistency} features; the data were extracted with "
                                f"{data.consistency} rotation consistency")
+        if C > 9 and data.placement != config.placement:
+            raise MeshseqError(f"placement {config.placement}: the data's placement channels were extracted with "
+                               f"{data.placement}")
         scaled = [scaling.apply(f) for f in data.features]  # (T_d, V, 9) float64 each
         if found is None and config.step_scale == "data":
             model_config.step_scale = [float(v) for v in step_spread(scaled, splits, config.stride)]
@@ -381,7 +384,8 @@ class _Saver:
             "scaling": setup.scaling.to_dict(),
             "topology": self.topo_meta,
             "datasets": self.datasets_meta,
-            "features": {"reference": "first frame of data set 0", "consistency": setup.config.consistency},
+            "features": {"reference": "first frame of data set 0", "consistency": setup.config.consistency,
+                         "placement": setup.config.placement},
             "torch_version": torch.__version__,
             "world_size": self.dist_info.world,
             **(extra or {}),

@@ -232,7 +232,7 @@ def reconstructed_vertices(data: TrainingData) -> tuple[object, list[np.ndarray]
     the truth as the features reconstruct it (no reconstruction error in what is compared)."""
     from meshseq.acap import Reconstructor
 
-    rec = Reconstructor(data.reference, data.faces)
+    rec = Reconstructor(data.reference, data.faces, placement=data.placement)
     return rec, [rec.solve(f) for f in data.features]  # centred (align.place)
 
 
