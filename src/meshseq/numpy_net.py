@@ -80,8 +80,6 @@ class NumpyNet:
 
     def __init__(self, config: ModelConfig, tensors: dict, ring, threads: int | None = None,
                  compiled: bool | None = None):
-        from meshseq import native
-
         self.config = config
         t = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in tensors.items()}
         C, K = config.channels, config.conv_layers
@@ -107,17 +105,23 @@ class NumpyNet:
                 self.enc[0] = folded_input_norm(self.enc[0], *norm, ring)
             else:
                 self.norm = norm
+        self._setup_compiled(compiled, threads, ring)
+
+    def _setup_compiled(self, compiled: bool | None, threads: int | None, ring) -> None:
+        """The compiled library (``meshseq.native``), its threads, ring and the conv layers' maps as
+        left factors ``(C_out, C_in)`` of channel-major frames; ``_lib`` None where it is not used."""
+        from meshseq import native
+        from meshseq.acap.features import frame_threads
+
         self._lib = native.conv_library() if compiled is None or compiled else None
         if compiled and self._lib is None:
             raise MeshseqError("the compiled mesh convolution is not available (see the warning above)")
-        if self._lib is not None:
-            from meshseq.acap.features import frame_threads
-
-            self._threads = frame_threads() if threads is None else threads
-            self._cring = native.CompiledRing(ring)
-            # (W_s, W_r) as left factors (C_out, C_in) of channel-major frames
-            self._compiled = {id(layer): (np.ascontiguousarray(layer[0].T), np.ascontiguousarray(layer[1].T))
-                              for layer in self.enc + self.dec}
+        if self._lib is None:
+            return
+        self._threads = frame_threads() if threads is None else threads
+        self._cring = native.CompiledRing(ring)
+        self._compiled = {id(layer): (np.ascontiguousarray(layer[0].T), np.ascontiguousarray(layer[1].T))
+                          for layer in self.enc + self.dec}
 
     @staticmethod
     def _split_ring(ring, threads: int | None):
