@@ -87,7 +87,11 @@ def test_prediction_continues_the_given_placement_and_keeps_the_rolled_out_chang
     model = load(trained, backend="numpy")
     g = model.features(seq.vertices[5:5 + given]).astype(np.float32)
     free = synthesize.predict(model, g, 8, continue_placement=False, bound=None)
-    cont = synthesize.predict(model, g, 8, bound=None)
+    cont = synthesize.predict(model, g, 8, continue_placement=True, bound=None)
+    assert model.placement == "anchor"  # the default recipe: no continuation unless asked
+    assert np.array_equal(synthesize.predict(model, g, 8, bound=None), free)
+    model.placement = "centroid"  # a run measured from the centroid (every run before anchors) continues
+    assert np.array_equal(synthesize.predict(model, g, 8, bound=None), cont)
     assert np.array_equal(cont[..., :9], free[..., :9])  # the ACAP channels as rolled out
     step = g[-1, :, 9:] - g[-2, :, 9:] if given > 1 else 0.0
     np.testing.assert_allclose(cont[0, :, 9:], g[-1, :, 9:] + step, atol=1e-6)  # no jump at the first frame
@@ -320,7 +324,7 @@ def test_a_model_trained_with_anchor_placement_reads_and_writes_its_own_channels
         TrainConfig(placement="nearest")
     config = TrainConfig(iterations=3, window=12, batch=4, eval_every=0, checkpoint_every=0, log_every=0)
     with pytest.raises(MeshseqError, match="placement anchor"):  # data extracted the other way
-        train(load_training_data([str(multi[1])]), tmp_path / "mismatch",
+        train(load_training_data([str(multi[1])], placement="centroid"), tmp_path / "mismatch",
               TrainConfig(**(config.to_dict() | {"placement": "anchor"})), device="cpu", progress=False,
               log=lambda m: None)
     with torch_threads(1):

@@ -84,7 +84,7 @@ def continued_placement(given: np.ndarray, generated: np.ndarray) -> np.ndarray:
 
 def predict(model, given, n_frames: int, state=None, sample: bool = False,
             bound: float | None = FEATURE_BOUND, pace: str = "given",
-            continue_placement: bool = True) -> np.ndarray:
+            continue_placement: bool | None = None) -> np.ndarray:
     """Generate ``n_frames`` frames after the given ones.
 
     Args:
@@ -99,7 +99,10 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
             ``pace_factor`` (a pose held still stays still, a slowing motion stays slow);
             ``model``: the roll-out as trained. One given frame says nothing of the pace.
         continue_placement: on a mesh of several parts (12 channels), ``continued_placement``
-            (no effect on 9 channels); False: the placement channels as rolled out.
+            (no effect on 9 channels); False: the placement channels as rolled out; None (default):
+            for a model whose channels measure the parts from the mesh's centroid (``model.placement``
+            ``centroid``), not for one that measures them from their anchors (their first step
+            does not jump: method.md, "Meshes of several parts").
     Returns:
         ``(n_frames, V, 9)`` (or ``(B, n_frames, V, 9)``) generated scaled features.
     """
@@ -132,6 +135,8 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         if bound is not None:
             cur = np.clip(cur, -bound, bound)
         out[:, t] = cur
+    if continue_placement is None:
+        continue_placement = getattr(model, "placement", "centroid") == "centroid"
     if continue_placement and x.shape[-1] == 12 and n_frames > 0:
         out = continued_placement(x, out)
         if bound is not None:

@@ -94,9 +94,9 @@ class TrainConfig:
         fits) [``none``: the window as given]. placement_jitter J (0.1 [0]): on a mesh of several
         parts, shift each part's placement channels in every training window by a random offset
         (normal, std J in scaled units, one per part and window; ``losses.jittered_placement``).
-        placement (``centroid``): what a part's placement channels measure it from
-        (``acap.parts.PLACEMENT_MODES``: the mesh's centroid, or ``anchor``, its nearest vertex of
-        the largest part).
+        placement (``anchor`` [``centroid``]): what a part's placement channels measure it from
+        (``acap.parts.PLACEMENT_MODES``: its anchor, the largest part's vertex nearest it, or the
+        mesh's centroid).
 
     Loss (``meshseq.training.losses``):
         w_rec, w_bd, w_kl, w_l2 (1, 0.5, 0.1, 0 [0.1]): weights of L_rec, L_bd, L_KL, L_2 (the sum
@@ -144,7 +144,7 @@ class TrainConfig:
     speed_augment: float = 1.0
     tempo_augment: float = 0.0
     placement_jitter: float = 0.1
-    placement: str = "centroid"
+    placement: str = "anchor"
     scaling: str = "two-group"
     consistency: str = "temporal"
     given: int = 1

@@ -27,7 +27,7 @@ class TrainingData:
     faces: np.ndarray
     reference: np.ndarray
     consistency: str = "temporal"  # the rotation consistency the features were extracted with
-    placement: str = "centroid"  # what the placement channels (several parts) measure from: acap.parts
+    placement: str = TrainConfig.placement  # what the placement channels (several parts) measure from: acap.parts
 
     @property
     def n_vertices(self) -> int:
