@@ -13,7 +13,7 @@ pre-activation, so a tanh layer's backward needs no pass of its own for tanh's d
 implementations of the same arithmetic:
 
 * CPU, float32: ``csrc/mesh_conv.cpp``, compiled on first use with the machine's C++ compiler
-  (``torch.utils.cpp_extension``; cached in ``meshseq_kernels-PY-TORCH-CPU`` under
+  (``torch.utils.cpp_extension``; cached in ``meshseq_kernels-PY-TORCH-CPU-CHECKOUT`` under
   ``TORCH_EXTENSIONS_DIR``, by default ``~/.cache/torch_extensions``). Forward: each vertex gathers its neighbours' ``(C, B)`` blocks
   (rows of the vertex-major layout), applies both maps, the bias, tanh and the residual while the
   block is in registers, vectorised over the windows: ``x`` read once, ``y`` written once.
@@ -85,10 +85,14 @@ def cpu_kernels_available() -> bool:
 
             py = f"py{sys.version_info[0]}{sys.version_info[1]}"
             root = os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()  # as torch's own builds
-            build = Path(root) / f"meshseq_kernels-{py}-torch{torch.__version__}-{cpu_signature()}"
+            import hashlib
+
+            # one folder per checkout (torch's build rebuilds whenever the sources' path changes: two
+            # checkouts sharing one folder rebuilt it in turn, and a build killed midway left its lock)
+            where = hashlib.sha1(str(_CSRC).encode()).hexdigest()[:8]
+            build = Path(root) / f"meshseq_kernels-{py}-torch{torch.__version__}-{cpu_signature()}-{where}"
             build.mkdir(parents=True, exist_ok=True)
             wait_for_build_lock(build)
-            import hashlib
 
             headers = hashlib.sha1(b"".join(p.read_bytes() for p in _HEADERS)).hexdigest()[:12]
             flags = ["-O3", "-march=native", "-fopenmp", f"-DMESHSEQ_HEADERS={headers}"]  # a header change rebuilds
