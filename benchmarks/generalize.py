@@ -169,11 +169,10 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     return out
 
 
-def rescore_completion(done: dict, run: Path, record: Path, args) -> dict:
-    """A finished record with its completion figures made again by today's code from the same
-    checkpoint (prediction is left as recorded); the command is kept as ``completion_command``."""
+def rescore(done: dict, run: Path, record: Path, args, kind: str, update) -> dict:
+    """A finished record with some of its figures made again by today's code from the same checkpoint:
+    ``update(model, block, verts, feats)`` for every block; the command is kept as ``KIND_command``."""
     import meshseq
-    from meshseq.evaluate import completion_errors
     from meshseq.io import load_sequence
 
     model = meshseq.load(run)
@@ -181,41 +180,41 @@ def rescore_completion(done: dict, run: Path, record: Path, args) -> dict:
         raise SystemExit(f"{run}: the newest checkpoint is iteration {model.iteration}, the record {done['iteration']}")
     for block in done["blocks"]:
         verts = load_sequence(block["sequence"]).vertices.astype(np.float64)
-        feats = model.features(verts)
-        lo, hi = block["frames"]
-        gaps = [g for g in GAPS if hi - lo >= g + 2]
-        block["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1)
+        update(model, block, verts, model.features(verts))
         print(line(done["set"] + "@" + done["holdout_at"], block), flush=True)
-    done["completion_command"] = "python benchmarks/generalize.py " + " ".join(args.argv)
+    done[f"{kind}_command"] = "python benchmarks/generalize.py " + " ".join(args.argv)
     record.write_text(json.dumps(done, indent=1))
     return done
 
 
+def rescore_completion(done: dict, run: Path, record: Path, args) -> dict:
+    """``rescore`` of the completion figures (prediction is left as recorded)."""
+    from meshseq.evaluate import completion_errors
+
+    def update(model, block, verts, feats):
+        lo, hi = block["frames"]
+        gaps = [g for g in GAPS if hi - lo >= g + 2]
+        block["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1)
+
+    return rescore(done, run, record, args, "completion", update)
+
+
 def rescore_prediction(done: dict, run: Path, record: Path, specs: list[str], args) -> dict:
-    """A finished record with ours' prediction figures (``motion_50`` and ``pace`` too) made again by
-    today's code from the same checkpoint; the baselines' are left as recorded (their code did not
-    change; the VAE baseline would be trained again). The command is kept as ``prediction_command``."""
-    import meshseq
+    """``rescore`` of ours' prediction figures (``motion_50`` and ``pace`` too); the baselines' are left
+    as recorded (their code did not change; the VAE baseline would be trained again)."""
     from meshseq import checkpoint as ckpt
     from meshseq.data.windows import Split
-    from meshseq.io import load_sequence
 
-    model = meshseq.load(run)
-    if model.iteration != done["iteration"]:
-        raise SystemExit(f"{run}: the newest checkpoint is iteration {model.iteration}, the record {done['iteration']}")
     meta = json.loads((ckpt.resolve(run) / "model.json").read_text())
     train_level = training_level(specs, [Split.from_dict(d["split"]) for d in meta["datasets"]])
-    for block in done["blocks"]:
-        verts = load_sequence(block["sequence"]).vertices.astype(np.float64)
-        feats = model.features(verts)
+
+    def update(model, block, verts, feats):
         lo, hi = block["frames"]
         for u, methods in prediction_scores(model, None, verts, feats, lo, hi, ["ours"]).items():
             block["prediction"][u]["ours"] = methods["ours"]
         block.update(motion_scores(model, verts, feats, train_level, lo, hi))
-        print(line(done["set"] + "@" + done["holdout_at"], block), flush=True)
-    done["prediction_command"] = "python benchmarks/generalize.py " + " ".join(args.argv)
-    record.write_text(json.dumps(done, indent=1))
-    return done
+
+    return rescore(done, run, record, args, "prediction", update)
 
 
 def train_vae_baseline(model, train_feats: np.ndarray):

@@ -15,11 +15,12 @@ import numpy as np
 
 def gap_motion(vertices: np.ndarray, faces: np.ndarray, mode: str) -> np.ndarray:
     """``(C,)``: each part's mean distance from its mean gap under ``mode`` (frame 0 the reference)."""
-    from meshseq.acap.parts import part_gaps
+    from meshseq.acap.parts import part_anchors, part_gaps
     from meshseq.mesh import Topology
 
     topo = Topology.from_faces(faces, vertices.shape[1])
-    gaps = part_gaps(vertices, topo, vertices[0], mode)  # (T, C, 3)
+    anchors = part_anchors(vertices[0], topo) if mode == "anchor" else None
+    gaps = part_gaps(vertices, topo, anchors)  # (T, C, 3)
     return np.linalg.norm(gaps - gaps.mean(axis=0), axis=-1).mean(axis=0)
 
 

@@ -1,12 +1,13 @@
-"""The numpy roll-out's compiled mesh convolution, built and loaded without torch.
+"""The numpy roll-out's compiled pieces, built and loaded without torch.
 
 ``predict`` and ``complete`` run the generator in numpy (``meshseq.numpy_net``) so that a command
 does not pay torch's import. Their mesh-conv layers are most of a diverse completion's time in
 numpy (a sparse product, two GEMMs of 9 columns, the bias and tanh: about ten passes over the
-frames); ``csrc/inference.cpp`` does a layer in one pass, as the training kernel does. It is a
-plain C function: built on first use with the system's C++ compiler (``CXX``, else ``c++``; about
-5 s) into ``MESHSEQ_KERNEL_DIR`` (default ``~/.cache/meshseq``), one build per source and CPU
-kind, and called through ``ctypes``.
+frames); ``csrc/inference.cpp`` does a layer in one pass, as the training kernel does, and holds
+the encoder's FC product (``fc_wx``) and a tiled transpose of the frames. They are plain C
+functions: built on first use with the system's C++ compiler (``CXX``, else ``c++``; about 1 s)
+into ``MESHSEQ_KERNEL_DIR`` (default ``~/.cache/meshseq``), one build per source and CPU kind,
+and called through ``ctypes``.
 
 ``MESHSEQ_CPU_KERNELS=0`` turns it off (as the training kernels); without a compiler, or when the
 build fails, numpy_net runs its numpy layers, after one warning.

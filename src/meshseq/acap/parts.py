@@ -44,19 +44,19 @@ PLACEMENT_MODES = ("centroid", "anchor")
 def placement_channels(vertices: np.ndarray, topology: Topology, reference: np.ndarray,
                        mode: str = "centroid") -> np.ndarray:
     """Placement channels ``(T, V, 3)`` of ``vertices (T, V, 3)`` against ``reference (V, 3)``."""
-    d = part_gaps(vertices, topology, reference, mode) - part_gaps(np.asarray(reference)[None], topology, reference, mode)
+    if mode not in PLACEMENT_MODES:
+        raise ValueError(f"unknown placement mode {mode!r}; expected one of {PLACEMENT_MODES}")
+    anchors = part_anchors(reference, topology) if mode == "anchor" else None
+    d = part_gaps(vertices, topology, anchors) - part_gaps(np.asarray(reference)[None], topology, anchors)
     return d[:, topology.component_labels]
 
 
-def part_gaps(vertices: np.ndarray, topology: Topology, reference: np.ndarray, mode: str) -> np.ndarray:
-    """Each part's centroid minus what ``mode`` measures it from, ``(T, C, 3)`` (zero for the largest
-    part under ``anchor``)."""
-    if mode == "centroid":
+def part_gaps(vertices: np.ndarray, topology: Topology, anchors: np.ndarray | None = None) -> np.ndarray:
+    """Each part's centroid minus what it is measured from, ``(T, C, 3)``: the mesh's centroid
+    (``anchors`` None), or its anchor vertex (``part_anchors``; zero for the largest part)."""
+    if anchors is None:
         return relative_centroids(vertices, topology)
-    if mode != "anchor":
-        raise ValueError(f"unknown placement mode {mode!r}; expected one of {PLACEMENT_MODES}")
     v = np.asarray(vertices, dtype=np.float64)
-    anchors = part_anchors(reference, topology)
     gaps = component_centroids(v, topology) - v[:, anchors]
     gaps[:, body_part(topology)] = 0.0
     return gaps
@@ -77,14 +77,15 @@ def part_anchors(reference: np.ndarray, topology: Topology) -> np.ndarray:
     return body[np.argmin(d2, axis=1)]
 
 
-def anchored_shifts(vertices: np.ndarray, channels: np.ndarray, topology: Topology, reference: np.ndarray) -> np.ndarray:
+def anchored_shifts(vertices: np.ndarray, channels: np.ndarray, topology: Topology, anchors: np.ndarray,
+                    reference_gaps: np.ndarray) -> np.ndarray:
     """``(T, C, 3)``: how far to move each part of ``vertices (T, V, 3)`` (each part solved up to a
     translation) so that it sits where ``anchor`` placement channels ``(T, V, 3)`` put it: its centroid
-    at its anchor plus its gap (the channels' mean over the part plus the reference's gap). The
-    largest part stays."""
+    at its anchor plus its gap (the channels' mean over the part plus the reference's gap,
+    ``reference_gaps`` ``(C, 3)``: ``part_gaps`` of the reference). The largest part stays."""
     v = np.asarray(vertices, dtype=np.float64)
-    gap = part_gaps(np.asarray(reference)[None], topology, reference, "anchor") + component_centroids(channels, topology)
-    shift = v[:, part_anchors(reference, topology)] + gap - component_centroids(v, topology)
+    gap = reference_gaps + component_centroids(channels, topology)
+    shift = v[:, anchors] + gap - component_centroids(v, topology)
     shift[:, body_part(topology)] = 0.0
     return shift
 

@@ -21,8 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from meshseq.acap.features import features_to_gradients, map_frame_chunks
-from meshseq.acap.parts import (PLACEMENT_MODES, anchored_shifts, component_centroids, component_offsets,
-                                offsets_from_channels)
+from meshseq.acap.parts import (PLACEMENT_CHANNELS, PLACEMENT_MODES, anchored_shifts, component_centroids,
+                                component_offsets, offsets_from_channels, part_anchors, part_gaps)
 from meshseq.acap.operators import ExactEncoder, FactoredMatrix, _free_vertices, _laplacian, _rhs_operator
 from meshseq.align import place
 from meshseq.mesh import Topology, cotangent_weights
@@ -58,6 +58,9 @@ class Reconstructor:
         self._factor = FactoredMatrix(self.laplacian[self.free][:, self.free])
         self.rhs_operator = _rhs_operator(q, e, w, n)  # (V, 3V)
         self.reference_offsets = component_offsets(q[None], topo)[0]  # (C, 3)
+        # ``anchor`` placement: each part's anchor vertex (C,) and its gap from it at rest (C, 3)
+        self.anchors = part_anchors(q, topo)
+        self.anchor_gaps = part_gaps(q[None], topo, self.anchors)[0]
 
     # -- gradients <-> right-hand side -------------------------------------------------------
     def rhs(self, gradients: np.ndarray) -> np.ndarray:
@@ -102,7 +105,8 @@ class Reconstructor:
         x[self.free] = self._factor.solve(bv[self.free])
         verts = x.reshape(n, n_frames, 3).transpose(1, 0, 2)
         if anchored is not None:
-            verts = verts + anchored_shifts(verts, anchored, self.topology, self.reference)[:, self.topology.component_labels]
+            shifts = anchored_shifts(verts, anchored, self.topology, self.anchors, self.anchor_gaps)
+            verts = verts + shifts[:, self.topology.component_labels]
         else:
             verts = self._place_components(verts, offsets)
         return place(verts, target, rigid=rigid)
@@ -127,7 +131,8 @@ class Reconstructor:
         f = f[None] if single else f
         place = None
         if offsets is None and f.shape[-1] > 9:
-            place = f[..., 9:12] if scaling is None else scaling.channels(slice(9, 12)).invert(f[..., 9:12])
+            P = PLACEMENT_CHANNELS
+            place = f[..., P] if scaling is None else scaling.channels(P).invert(f[..., P])
             if self.placement == "centroid":
                 offsets, place = offsets_from_channels(place, self.topology, self.reference), None
 

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from meshseq.acap.features import features_to_gradients
-from meshseq.acap.parts import body_part, part_anchors, part_gaps, relative_centroids
+from meshseq.acap.parts import PLACEMENT_CHANNELS, body_part, relative_centroids
 from meshseq.acap.reconstruct import Reconstructor
 
 #: cholespy's CUDA solver takes at most this many right-hand sides at once.
@@ -71,12 +71,10 @@ class TorchReconstructor(torch.nn.Module):
         rel = relative_centroids(reconstructor.reference[None], reconstructor.topology)[0]  # (C, 3), at rest
         self.register_buffer("reference_placement", torch.as_tensor(rel, dtype=dtype, device=device))
         self.placement = reconstructor.placement  # what 12-channel features' placement channels measure from
-        if self.n_components > 1:
-            ref, topo = reconstructor.reference, reconstructor.topology
-            self.register_buffer("anchors", torch.as_tensor(part_anchors(ref, topo), device=device))
-            gaps = part_gaps(ref[None], topo, ref, "anchor")[0]
-            self.register_buffer("anchor_gaps", torch.as_tensor(gaps, dtype=dtype, device=device))
-            self.body = body_part(topo)
+        if self.n_components > 1:  # ``anchor`` placement (acap.parts.anchored_shifts)
+            self.register_buffer("anchors", torch.as_tensor(reconstructor.anchors, device=device))
+            self.register_buffer("anchor_gaps", torch.as_tensor(reconstructor.anchor_gaps, dtype=dtype, device=device))
+            self.body = body_part(reconstructor.topology)
         counts = np.bincount(labels, minlength=self.n_components)
         self.register_buffer("counts", torch.as_tensor(counts, dtype=dtype, device=device))
         reduced = reconstructor._factor.matrix.tocoo()
@@ -104,11 +102,11 @@ class TorchReconstructor(torch.nn.Module):
         if self.n_components > 1:
             cents = self._part_means(verts)
             if features.shape[-1] > 9 and self.placement == "anchor":  # acap.parts.anchored_shifts
-                gap = self.anchor_gaps[None] + self._part_means(features[..., 9:12].to(verts.dtype))
+                gap = self.anchor_gaps[None] + self._part_means(features[..., PLACEMENT_CHANNELS].to(verts.dtype))
                 shift = verts[:, self.anchors] + gap - cents
                 shift = shift.index_fill(1, torch.tensor([self.body], device=verts.device), 0.0)
             else:
-                offsets = self.offsets[None] if features.shape[-1] <= 9 else self._offsets(features[..., 9:12])
+                offsets = self.offsets[None] if features.shape[-1] <= 9 else self._offsets(features[..., PLACEMENT_CHANNELS])
                 shift = offsets - (cents - cents[:, :1])
             verts = verts + shift[:, self.labels]
         return verts - verts.mean(dim=1, keepdim=True)
