@@ -335,12 +335,19 @@ def barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray)
     return out / out.sum(axis=1, keepdims=True)
 
 
+#: Decimals (of a metre) the rest pose is rounded to before decimation (see ``make_template``).
+TEMPLATE_DECIMALS = 7
+
+
 def make_template(rest: np.ndarray, faces: np.ndarray, n_vertices: int) -> Template:
     """Decimate the closed genus-0 mesh ``rest (V, 3)``, ``faces (F, 3)`` to ``n_vertices`` with
     QSlim (libigl) and embed each decimated vertex at its closest point on the full mesh."""
     import igl
 
-    rest = np.ascontiguousarray(rest, dtype=np.float64)
+    # QSlim's collapse order turns on the last bits of the input, and Anny's rest pose differs in
+    # them with torch's thread count (4e-16): rounded to 0.1 micrometre, the template (and so the
+    # connectivity of every file make-bodies writes) no longer depends on it.
+    rest = np.round(np.asarray(rest, dtype=np.float64), TEMPLATE_DECIMALS)
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     n = int(n_vertices)
     if n < 100:
