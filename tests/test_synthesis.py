@@ -68,6 +68,44 @@ def test_prediction_from_a_pose_held_still_stays_still(model, trained):
     assert not np.allclose(predict(model, moving, 5), np.repeat(moving[-1:], 5, 0), atol=1e-4)
 
 
+def test_novelty_reference_is_the_training_frames_and_the_guard_spares_them(model, trained):
+    """The checkpoint holds the delivered model's latents of its training frames (both backends
+    read them); prediction from training frames is the roll-out bit for bit."""
+    from meshseq import novelty
+    from meshseq.api import load
+    from meshseq.synthesize import novelty_weights, predict
+
+    v = trained[2].vertices
+    split = model.meta["datasets"][0]["split"]["train"]
+    whole = model.features(v)  # (features of a part alone may take other rotation branches)
+    frames = np.concatenate([whole[a:b] for a, b in split])
+    ref = model.novelty
+    assert ref is not None and ref.latents.shape == (len(frames), model.config.latent)
+    assert np.allclose(ref.latents, model.engine.encode(frames), atol=1e-4)
+    assert np.abs(novelty.novelty(model.engine.encode(frames), ref)).max() < 1e-2
+    cpu = load(trained[0], backend="numpy")
+    assert np.array_equal(cpu.novelty.latents, ref.latents) and cpu.novelty.step == ref.step
+    x = model.features(v[20:23])
+    assert np.all(novelty_weights(model, x[None]) == 1.0)
+    assert np.array_equal(predict(model, x, 8), predict(model, x, 8, guard=False))
+
+
+def test_prediction_from_frames_unlike_the_training_ones_falls_back(model, trained):
+    """A pose the model never saw (the limb's features negated): the guard's weight is low and the
+    prediction is the roll-out blended by it towards the fallback (the given velocity, damped)."""
+    from meshseq import novelty
+    from meshseq.synthesize import novelty_weights, predict
+
+    far = -model.features(trained[2].vertices[20:23])
+    weight = novelty_weights(model, far[None])
+    assert weight[0] < 0.5
+    free = predict(model, far, 10, guard=False)
+    out = predict(model, far, 10)
+    assert np.allclose(out, np.clip(novelty.guarded(free[None], far[None], weight)[0], -1, 1), atol=1e-6)
+    base = novelty.fallback(far[None], 10)[0]
+    assert np.abs(out - base).max() < 0.5 * np.abs(free - base).max()
+
+
 def test_pace_factor_compares_given_steps_with_the_expected_ones():
     from meshseq.synthesize import pace_factor, predict
 

@@ -58,10 +58,12 @@ class Model:
         config: its ``ModelConfig``; ``meta``: the checkpoint's JSON.
         reference: ``(V, 3)`` float64 reference vertices; ``faces``: ``(F, 3)`` int64.
         scaling: the ``meshseq.acap.Scaling`` fitted on the training frames.
+        novelty: the training frames' latents (``meshseq.novelty.NoveltyReference``), which
+            prediction's guard measures given frames against; None for runs stored without.
     """
 
     def __init__(self, net, meta: dict, reference: np.ndarray, faces: np.ndarray, device,
-                 reconstructor=None):
+                 reconstructor=None, novelty=None):
         from meshseq.acap import Scaling
         from meshseq.numpy_net import NumpyNet
 
@@ -85,6 +87,7 @@ class Model:
         # what a multi-part model's placement channels measure from (acap.parts.PLACEMENT_MODES)
         self.placement = meta.get("features", {}).get("placement", "centroid")
         self._reconstructor = reconstructor  # an acap.Reconstructor of (reference, faces); made when first needed
+        self.novelty = novelty  # meshseq.novelty.NoveltyReference of the training frames, or None
 
     def __repr__(self) -> str:
         c = self.config
@@ -306,10 +309,10 @@ def load(run: str | os.PathLike, device: str = "cpu", backend: str = "torch") ->
             raise MeshseqError(f"--device {device}: the numpy inference runs on the CPU (device cpu or auto)")
         loaded = ckpt.load(run, backend="numpy")
         return Model(loaded.net, loaded.meta, loaded.reference.astype(np.float64), loaded.faces.astype(np.int64),
-                     "cpu")
+                     "cpu", novelty=loaded.novelty)
     from meshseq.device import resolve_device
 
     dev = resolve_device(device)
     loaded = ckpt.load(run)
     return Model(loaded.net.to(dev), loaded.meta, loaded.reference.astype(np.float64),
-                 loaded.faces.astype(np.int64), dev)
+                 loaded.faces.astype(np.int64), dev, novelty=loaded.novelty)

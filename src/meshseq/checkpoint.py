@@ -51,6 +51,7 @@ from meshseq.errors import MeshseqError, MeshseqWarning
 from meshseq.io import atomic_output
 from meshseq.mesh import topology_hash
 from meshseq.model_config import ModelConfig
+from meshseq.novelty import NoveltyReference
 
 MODEL_TENSORS, MODEL_META = "model.safetensors", "model.json"
 STATE_TENSORS, STATE_META = "state.safetensors", "state.json"
@@ -202,7 +203,8 @@ class Loaded:
 
     ``folder``; ``meta``: model.json; ``net``: a CPU ``BDLSTM`` holding the stored weights;
     ``reference`` ``(V, 3)`` float64 and ``faces`` ``(F, 3)`` int64: the stored mesh;
-    ``state_meta``/``state_tensors``: state.json and state.safetensors (None unless asked for).
+    ``state_meta``/``state_tensors``: state.json and state.safetensors (None unless asked for);
+    ``novelty``: the training frames' latents (``meshseq.novelty``), None for a run stored without.
     """
 
     folder: Path
@@ -212,6 +214,7 @@ class Loaded:
     faces: np.ndarray
     state_meta: dict | None = None
     state_tensors: dict | None = None
+    novelty: NoveltyReference | None = None
 
     def __repr__(self) -> str:
         return f"Loaded({str(self.folder)!r}, iteration={self.meta['iteration']})"
@@ -242,6 +245,9 @@ def load_folder(folder: str | os.PathLike, with_state: bool = False, backend: st
     net = _build_net(ModelConfig.from_dict(meta["model"], source=str(folder / MODEL_META)), weights, faces,
                      backend)
     loaded = Loaded(folder, meta, net, reference, faces)
+    if meta.get("novelty") is not None:
+        latents = np.ascontiguousarray(np.asarray(tensors[schema.NOVELTY_LATENTS]), dtype=np.float32)
+        loaded.novelty = NoveltyReference(latents, float(meta["novelty"]["step"]))
     if with_state:
         smeta = _read_json(folder / STATE_META)
         schema.check_state_meta(smeta, folder / STATE_META, meta["iteration"])

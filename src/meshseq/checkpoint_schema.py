@@ -29,6 +29,8 @@ from meshseq.errors import MeshseqError
 #: what a checkpoint's model.json says it is (``format``) and the newest version this meshseq reads
 FORMAT = "meshseq-bdlstm-checkpoint"
 FORMAT_VERSION = 1
+#: the training frames' latents (``meshseq.novelty``), with ``novelty`` in model.json; optional
+NOVELTY_LATENTS = "novelty.latents"
 
 
 class CheckpointError(MeshseqError):
@@ -144,6 +146,7 @@ def model_meta_schema() -> dict:
         "scaling": _SCALING, "topology": _TOPOLOGY, "datasets": [_DATASET],
         "features": Opt({"consistency": Opt(str), "reference": Opt(str), "placement": Opt(str)}),
         "validation": Opt({"error": float, "iteration": int}),
+        "novelty": Opt({"step": float, "frames": int}),
     }
 
 
@@ -194,6 +197,10 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
     consistency = meta.get("features", {}).get("consistency", "temporal")
     if consistency not in ("temporal", "spatial"):
         raise CheckpointError(file, "features.consistency", f"{consistency!r}: expected temporal or spatial")
+    nov = meta.get("novelty")
+    if nov is not None and not (nov["step"] > 0 and math.isfinite(nov["step"]) and nov["frames"] >= 1):
+        raise CheckpointError(file, "novelty", f"step {nov['step']} and frames {nov['frames']}: expected a positive "
+                              "step and at least one frame")
     placement = meta.get("features", {}).get("placement", "centroid")
     if placement not in ("centroid", "anchor"):  # acap.parts.PLACEMENT_MODES
         raise CheckpointError(file, "features.placement", f"{placement!r}: expected centroid or anchor")
@@ -341,12 +348,15 @@ def check_reference(tensors: dict, meta: dict, file: Path) -> None:
 def check_model_tensors(tensors: dict, meta: dict, file: Path) -> None:
     """CheckpointError unless model.safetensors holds ``model.<name>`` for every tensor of the model
     ``meta`` (model.json, checked) describes (``model_config.tensor_shapes``, float32), finite,
-    besides the reference mesh (:func:`check_reference`), and nothing else."""
+    besides the reference mesh (:func:`check_reference`) and, where model.json has ``novelty``,
+    ``novelty.latents`` ``(frames, latent)`` float32; nothing else."""
     from meshseq.model_config import ModelConfig, tensor_shapes
 
     config = ModelConfig.from_dict(meta["model"], source=str(file))
     want = {f"model.{k}": TensorSpec(shape, "float32") for k, shape in tensor_shapes(config).items()}
     want.update({k: tensors[k] for k in ("reference.vertices", "reference.faces")})  # checked before
+    if meta.get("novelty") is not None:
+        want[NOVELTY_LATENTS] = TensorSpec((meta["novelty"]["frames"], config.latent), "float32")
     check_like(tensors, want, file, exact=True)
 
 

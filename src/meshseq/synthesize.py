@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from meshseq import novelty
 from meshseq.acap.parts import PLACEMENT_CHANNELS as PLACEMENT
 from meshseq.errors import MeshseqError
 
@@ -84,7 +85,7 @@ def continued_placement(given: np.ndarray, generated: np.ndarray) -> np.ndarray:
 
 def predict(model, given, n_frames: int, state=None, sample: bool = False,
             bound: float | None = FEATURE_BOUND, pace: str = "given",
-            continue_placement: bool | None = None) -> np.ndarray:
+            continue_placement: bool | None = None, guard: bool = True) -> np.ndarray:
     """Generate ``n_frames`` frames after the given ones.
 
     Args:
@@ -103,6 +104,9 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
             for a model whose channels measure the parts from the mesh's centroid (``model.placement``
             ``centroid``), not for one that measures them from their anchors (their first step
             does not jump: method.md, "Meshes of several parts").
+        guard: blend the roll-out towards ``novelty.fallback`` where the given frames are unlike
+            the training frames (``novelty_weights``); no effect for a model stored without a
+            novelty reference. False: the roll-out as it is (the paper's).
     Returns:
         ``(n_frames, V, 9)`` (or ``(B, n_frames, V, 9)``) generated scaled features.
     """
@@ -135,6 +139,12 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         if bound is not None:
             cur = np.clip(cur, -bound, bound)
         out[:, t] = cur
+    if guard:
+        weight = novelty_weights(model, x)
+        if weight is not None:
+            out = novelty.guarded(out, x, weight)
+            if bound is not None:
+                np.clip(out, -bound, bound, out=out)
     if continue_placement is None:
         continue_placement = getattr(model, "placement", "centroid") == "centroid"
     if continue_placement and x.shape[-1] == 12 and n_frames > 0:
@@ -142,6 +152,18 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         if bound is not None:
             np.clip(out, -bound, bound, out=out)
     return out[0] if single else out
+
+
+def novelty_weights(model, given: np.ndarray) -> np.ndarray | None:
+    """The model's share ``(B,)`` of predictions after given frames ``(B, U, V, C)``: the guard
+    weight of the most novel given frame (``meshseq.novelty``); None for a model without a
+    novelty reference."""
+    reference = getattr(model, "novelty", None)
+    if reference is None:
+        return None
+    bsz, u = given.shape[:2]
+    z = model.engine.encode(given.reshape((bsz * u,) + given.shape[2:]))
+    return novelty.guard_weight(novelty.novelty(z, reference).reshape(bsz, u).max(axis=1))
 
 
 # --------------------------------------------------------------------------------------------

@@ -3,6 +3,7 @@ in and out, as ``meshseq.numpy_net.NumpyNet`` takes and gives them.
 
 The interface (both classes): ``config``; ``initial_state(n_forward, n_backward) -> (h, c)``, each
 ``(K, B, L)`` float32; ``step(state, x (B, V, C), n_forward=None, sample=False) -> (state', x')``;
+``encode(x (B, V, C)) -> mu (B, L)``;
 ``rollout(first (B, V, C), steps, state, n_forward=None) -> (frames (B, steps + 1, V, C), state')``.
 Rows ``[:n_forward]`` are forward chains, the rest backward ones (std-bd's second LSTM). On CPU the
 arrays are shared with the tensors (no copies); on CUDA each call moves its inputs and outputs.
@@ -41,6 +42,10 @@ class TorchNet:
             st, nxt, _, _ = self.net.step(tuple(self._in(s) for s in state), self._in(x), sample=sample,
                                           n_forward=n_forward)
         return tuple(self._out(s) for s in st), self._out(nxt)
+
+    def encode(self, x) -> np.ndarray:
+        with torch.no_grad():
+            return self._out(self.net.encode(self._in(x))[0])
 
     def rollout(self, first, steps: int, state, n_forward: int | None = None):
         with torch.no_grad():

@@ -18,6 +18,8 @@ PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
 COMPLETION_METHODS = ("ours", "corrected", "stitch", "cma", "linear", "linear_vertices")
 #: ``meshseq.synthesize.PACES`` (the same check)
 PACES = ("given", "model")
+#: prediction's guard against given frames unlike the training frames (``meshseq.novelty``)
+GUARDS = ("novelty", "off")
 
 
 def register(sub) -> None:
@@ -37,6 +39,10 @@ def register(sub) -> None:
                    help="given (default): with --given 2 or more, slow the roll-out to the given frames' pace "
                    "where they move slower than the model expects (a pose held still stays still); "
                    "model: the roll-out as trained")
+    p.add_argument("--guard", choices=GUARDS, default=GUARDS[0],
+                   help="novelty (default): where the given frames are unlike every training frame, blend "
+                   "the roll-out towards the given motion continued and slowing (the model's own motion "
+                   "there is a guess); off: the roll-out alone (the paper's)")
     _output(p)
     p.set_defaults(func=cmd_predict)
 
@@ -215,7 +221,12 @@ def cmd_predict(args) -> int:
     given_v = seq.vertices[args.start:args.start + args.given]
     feats = model.features(given_v)
     if args.method == "ours":
-        gen = synthesize.predict(model, feats, args.frames, pace=args.pace)
+        guard = args.guard == "novelty"
+        gen = synthesize.predict(model, feats, args.frames, pace=args.pace, guard=guard)
+        weight = synthesize.novelty_weights(model, feats[None]) if guard else None
+        if weight is not None and weight[0] < 1.0:
+            print(f"note: the given frames are unlike the training frames: the prediction is {weight[0]:.0%} the "
+                  "model's, the rest the given motion continued and slowing (--guard off: the model alone)")
     elif args.method == "vae_latent":
         all_feats = model.features(seq.vertices)
         lo, hi = _recorded_heldout(model, seq) or (args.start, args.start + args.given)

@@ -30,8 +30,10 @@ from torch import nn
 from meshseq import checkpoint as ckpt
 from meshseq.data.windows import Split, WindowSampler, heldout_rows, split_frames
 from meshseq.errors import MeshseqError
+from meshseq.checkpoint_schema import NOVELTY_LATENTS
 from meshseq.mesh import Topology, topology_hash
 from meshseq.model import BDLSTM, ModelConfig
+from meshseq.novelty import NoveltyReference, reference_latents
 from meshseq.training.config import GRAD_CLIP_HISTORY, TrainConfig
 from meshseq.training.data import TrainingData, fit_window, step_spread, training_windows
 from meshseq.training.losses import WindowLoss, make_vertex_loss, reconstructed_vertices, window_losses
@@ -356,6 +358,21 @@ def heldout_losses(st: _State, frames: torch.Tensor, eval_rows: np.ndarray) -> d
     return out
 
 
+def novelty_reference(st: _State, setup: _Setup, dev) -> NoveltyReference:
+    """The training frames' latents (``meshseq.novelty``) of the model as a checkpoint delivers it."""
+    model = st.model
+    segments = [x[a:b] for x, split in zip(setup.scaled, setup.splits) for a, b in split.train if b - a > 0]
+
+    def encode(frames: np.ndarray) -> np.ndarray:
+        return model.encode(torch.from_numpy(np.asarray(frames, dtype=np.float32)).to(dev))[0].cpu().numpy()
+
+    model.eval()
+    with torch.no_grad(), weights_swapped(st.params, st.average):
+        reference = reference_latents(encode, segments)
+    model.train()
+    return reference
+
+
 class _Saver:
     """Checkpoints of a run: ``save`` writes one (rank 0), ``checkpoint`` gathers every rank's
     generator state first (every rank calls it)."""
@@ -378,6 +395,8 @@ class _Saver:
             tensors.update({f"model.{n}": a for n, a in zip(st.param_names, st.average)})
         tensors["reference.vertices"] = torch.from_numpy(np.asarray(data.reference, dtype=np.float64))
         tensors["reference.faces"] = torch.from_numpy(np.asarray(data.faces, dtype=np.int64))
+        novelty = novelty_reference(st, setup, self.dev)
+        tensors[NOVELTY_LATENTS] = torch.from_numpy(novelty.latents)
         meta = {
             "model": setup.model_config.to_dict(),
             "train": setup.config.to_dict(),
@@ -388,6 +407,7 @@ class _Saver:
                          "placement": setup.config.placement},
             "torch_version": torch.__version__,
             "world_size": self.dist_info.world,
+            "novelty": {"step": novelty.step, "frames": int(len(novelty.latents))},
             **(extra or {}),
         }
         opt_t, opt_meta = ckpt.optimizer_state(st.optimizer, st.names)

@@ -1,0 +1,104 @@
+"""How unlike the training frames given frames are, and prediction's guard against the unfamiliar.
+
+A trained generator continues the motions it has seen. Given frames of a motion it never saw, it
+still plays one it knows, and its prediction ends up several times further from the truth than
+standing still (method.md, "Novelty guard"). The encoder's latent space tells the two apart:
+frames of a new performer doing a trained motion lie within a step or so of a training frame's
+latent, frames of an untrained motion several steps away.
+
+- ``NoveltyReference``: the latent means of the training frames and their typical step (the
+  median distance between the latents of consecutive training frames), stored with a checkpoint.
+- ``novelty``: each frame's distance to the nearest training latent, in typical steps.
+- ``guard_weight``: 1 up to ``GUARD_START`` steps, 0 from ``GUARD_END``, linear between.
+- ``fallback``: what prediction falls back to: the last given frame held (one given frame), or
+  its velocity continued and damped by ``FALLBACK_DECAY`` a frame (two or more).
+- ``guarded``: the roll-out blended towards the fallback by the weight.
+
+Arrays in, arrays out; nothing here loads, trains or prints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+#: novelty (in typical training steps) up to which prediction is the model's own
+GUARD_START = 2.0
+#: novelty from which prediction is the fallback alone
+GUARD_END = 4.0
+#: a frame's share of the previous frame's velocity in the fallback of two or more given frames
+FALLBACK_DECAY = 0.9
+#: training frames kept in a reference (evenly spaced beyond it)
+MAX_REFERENCE_FRAMES = 4096
+_ENCODE_BATCH = 32
+
+
+@dataclass(frozen=True)
+class NoveltyReference:
+    """``latents`` ``(N, L)`` float32: latent means of training frames; ``step`` > 0: the median
+    latent distance between consecutive training frames."""
+
+    latents: np.ndarray
+    step: float
+
+
+def reference_latents(encode: Callable[[np.ndarray], np.ndarray], sequences: list[np.ndarray],
+                      max_frames: int = MAX_REFERENCE_FRAMES) -> NoveltyReference:
+    """The reference of training ``sequences`` (each ``(T_i, V, C)`` scaled features, T_i >= 1;
+    at least one with two frames), ``encode``: frames ``(B, V, C)`` -> latent means ``(B, L)``."""
+    latents, steps = [], []
+    for seq in sequences:
+        z = np.concatenate([np.asarray(encode(seq[i:i + _ENCODE_BATCH]), dtype=np.float32)
+                            for i in range(0, len(seq), _ENCODE_BATCH)])
+        latents.append(z)
+        steps.append(np.linalg.norm(np.diff(z, axis=0), axis=1))
+    all_steps = np.concatenate(steps)
+    if all_steps.size == 0:
+        raise ValueError("a novelty reference needs a sequence of at least two frames")
+    z = np.concatenate(latents)
+    if len(z) > max_frames:
+        z = z[np.linspace(0, len(z) - 1, max_frames).round().astype(np.int64)]
+    step = float(np.median(all_steps))
+    return NoveltyReference(np.ascontiguousarray(z), step if step > 0 else 1.0)
+
+
+def novelty(latents: np.ndarray, reference: NoveltyReference) -> np.ndarray:
+    """Distance of each latent ``(..., L)`` to the nearest reference latent, in typical steps ``(...)``."""
+    z = np.asarray(latents, dtype=np.float64)
+    flat = z.reshape(-1, z.shape[-1])
+    ref = reference.latents.astype(np.float64)
+    d2 = (flat * flat).sum(1)[:, None] - 2.0 * flat @ ref.T + (ref * ref).sum(1)[None]
+    return (np.sqrt(np.maximum(d2.min(axis=1), 0.0)) / reference.step).reshape(z.shape[:-1])
+
+
+def guard_weight(nov: np.ndarray, start: float = GUARD_START, end: float = GUARD_END) -> np.ndarray:
+    """The model's share of a prediction at novelty ``nov``: 1 up to ``start``, 0 from ``end``."""
+    return np.clip((end - np.asarray(nov, dtype=np.float64)) / (end - start), 0.0, 1.0)
+
+
+def fallback(given: np.ndarray, n_frames: int, decay: float = FALLBACK_DECAY) -> np.ndarray:
+    """``(B, n, V, C)`` frames after given ``(B, U, V, C)``: the last held (U = 1), else its
+    velocity continued with a share ``decay`` of it kept each frame."""
+    x = np.asarray(given)
+    last = x[:, -1:]
+    if x.shape[1] < 2:
+        return np.repeat(last, int(n_frames), axis=1)
+    k = np.arange(1, int(n_frames) + 1, dtype=np.float64)
+    reach = (1.0 - decay ** k) / (1.0 - decay)  # the velocity's summed share after k frames
+    velocity = x[:, -1:] - x[:, -2:-1]
+    return last + reach.astype(x.dtype)[None, :, None, None] * velocity
+
+
+def guarded(frames: np.ndarray, given: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Generated ``frames`` ``(B, n, V, C)`` blended towards ``fallback(given, n)`` by ``weight``
+    ``(B,)`` (1: the frames unchanged; 0: the fallback)."""
+    w = np.asarray(weight, dtype=np.float64)
+    rows = np.flatnonzero(w < 1.0)  # the others stay bit for bit the roll-out
+    if len(rows) == 0:
+        return frames
+    base = fallback(np.asarray(given)[rows], frames.shape[1])
+    out = frames.copy()
+    out[rows] = base + w[rows].astype(frames.dtype)[:, None, None, None] * (frames[rows] - base)
+    return out

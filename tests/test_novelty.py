@@ -1,0 +1,58 @@
+"""The novelty of given frames against the training frames' latents, and prediction's guard."""
+
+import numpy as np
+import pytest
+
+from meshseq import novelty
+from meshseq.novelty import NoveltyReference
+
+
+def test_reference_keeps_every_latent_and_the_median_step():
+    seq = np.arange(5, dtype=np.float32)[:, None, None] * np.ones((1, 2, 3), np.float32)  # (5, 2, 3)
+
+    def encode(frames):  # (B, 2, 3) -> (B, 2): steps of sqrt(2) * 1 between frames
+        return frames[:, :, 0]
+
+    ref = novelty.reference_latents(encode, [seq, seq[:1]])
+    assert ref.latents.shape == (6, 2) and ref.latents.dtype == np.float32
+    assert ref.step == pytest.approx(np.sqrt(2.0))
+    thinned = novelty.reference_latents(encode, [seq], max_frames=3)
+    assert np.array_equal(thinned.latents[:, 0], [0.0, 2.0, 4.0])  # evenly spaced, ends kept
+    with pytest.raises(ValueError, match="two frames"):
+        novelty.reference_latents(encode, [seq[:1]])
+
+
+def test_novelty_is_the_nearest_distance_in_steps():
+    ref = NoveltyReference(np.array([[0.0, 0.0], [10.0, 0.0]], np.float32), step=2.0)
+    z = np.array([[[0.0, 0.0], [10.0, 6.0]], [[4.0, 3.0], [5.0, 0.0]]])  # (2, 2, L)
+    assert np.allclose(novelty.novelty(z, ref), [[0.0, 3.0], [2.5, 2.5]])
+
+
+def test_guard_weight_falls_from_one_to_zero_between_start_and_end():
+    w = novelty.guard_weight(np.array([0.0, novelty.GUARD_START, 3.0, novelty.GUARD_END, 50.0]))
+    assert np.allclose(w, [1.0, 1.0, (novelty.GUARD_END - 3.0) / (novelty.GUARD_END - novelty.GUARD_START), 0.0, 0.0])
+
+
+def test_fallback_holds_one_frame_and_damps_the_velocity_of_two():
+    rng = np.random.default_rng(0)
+    one = rng.normal(size=(2, 1, 4, 9)).astype(np.float32)
+    assert np.array_equal(novelty.fallback(one, 3), np.repeat(one, 3, axis=1))
+    two = rng.normal(size=(2, 3, 4, 9))
+    out = novelty.fallback(two, 30)
+    v = two[:, -1] - two[:, -2]
+    assert np.allclose(out[:, 0], two[:, -1] + v)  # the first frame keeps the last velocity
+    steps = np.diff(np.concatenate([two[:, -1:], out], axis=1), axis=1)
+    assert np.allclose(steps[:, 1:], novelty.FALLBACK_DECAY * steps[:, :-1])
+    reach = (out[:, -1] - two[:, -1]) / v
+    assert np.all(reach < 1.0 / (1.0 - novelty.FALLBACK_DECAY))  # never past ten velocities
+
+
+def test_guarded_leaves_familiar_frames_alone_and_replaces_novel_ones():
+    rng = np.random.default_rng(1)
+    given = rng.normal(size=(3, 2, 4, 9)).astype(np.float32)
+    frames = rng.normal(size=(3, 5, 4, 9)).astype(np.float32)
+    assert novelty.guarded(frames, given, np.ones(3)) is frames
+    out = novelty.guarded(frames, given, np.array([1.0, 0.0, 0.5]))
+    base = novelty.fallback(given, 5)
+    assert np.array_equal(out[0], frames[0]) and np.allclose(out[1], base[1])
+    assert np.allclose(out[2], 0.5 * (frames[2] + base[2]), atol=1e-6)
