@@ -138,7 +138,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
         if done.get("iteration") == args.iterations:
             if args.rescore_prediction:
                 done = rescore_prediction(done, run, record, specs, args)
-            return rescore_completion(done, run, record, args) if args.rescore_completion else done
+            return rescore_completion(done, run, record, specs, args) if args.rescore_completion else done
     data = load_training_data(specs)
     config = TrainConfig(iterations=args.iterations, seed=args.seed, holdout_at=holdout_at, holdout=holdout,
                          eval_every=0,
@@ -150,6 +150,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     model = meshseq.load(run)
     meta = json.loads((ckpt.resolve(run) / "model.json").read_text())
     splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
+    reference = ensure_novelty(model, specs, splits)
     train_feats = np.concatenate([model.scaling.apply(f)[a:b] for f, s in zip(data.features, splits) for a, b in s.train])
     vae = train_vae_baseline(model, train_feats)
     train_level = training_level(specs, splits)
@@ -163,21 +164,40 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
         blocks.append(block)
         print(line(tag, block), flush=True)
     out = {"set": name, "holdout_at": holdout_at, "iteration": model.iteration, "seconds_training": seconds,
-           "train": config.to_dict(), "blocks": blocks,
+           "train": config.to_dict(), "novelty_reference": reference, "blocks": blocks,
            "command": "python benchmarks/generalize.py " + " ".join(args.argv)}
     record.write_text(json.dumps(out, indent=1))
     return out
 
 
-def rescore(done: dict, run: Path, record: Path, args, kind: str, update) -> dict:
+def ensure_novelty(model, specs: list[str], splits) -> str:
+    """Give a model stored before checkpoints held the training frames' latents (``meshseq.novelty``)
+    the reference training would have stored: its latents of the training segments of ``specs``.
+    Returns where the reference came from (for the record)."""
+    from meshseq.io import load_sequence
+    from meshseq.novelty import reference_latents
+
+    if model.novelty is not None:
+        return "stored"
+    feats = [model.features(load_sequence(spec).vertices.astype(np.float64)) for spec in specs]
+    model.novelty = reference_latents(model.engine.encode, [f[a:b] for f, split in zip(feats, splits)
+                                                            for a, b in split.train if b - a > 0])
+    return "made when scored"
+
+
+def rescore(done: dict, run: Path, record: Path, specs: list[str], args, kind: str, update) -> dict:
     """A finished record with some of its figures made again by today's code from the same checkpoint:
     ``update(model, block, verts, feats)`` for every block; the command is kept as ``KIND_command``."""
     import meshseq
+    from meshseq import checkpoint as ckpt
+    from meshseq.data.windows import Split
     from meshseq.io import load_sequence
 
     model = meshseq.load(run)
     if model.iteration != done["iteration"]:
         raise SystemExit(f"{run}: the newest checkpoint is iteration {model.iteration}, the record {done['iteration']}")
+    meta = json.loads((ckpt.resolve(run) / "model.json").read_text())
+    done["novelty_reference"] = ensure_novelty(model, specs, [Split.from_dict(d["split"]) for d in meta["datasets"]])
     for block in done["blocks"]:
         verts = load_sequence(block["sequence"]).vertices.astype(np.float64)
         update(model, block, verts, model.features(verts))
@@ -187,7 +207,7 @@ def rescore(done: dict, run: Path, record: Path, args, kind: str, update) -> dic
     return done
 
 
-def rescore_completion(done: dict, run: Path, record: Path, args) -> dict:
+def rescore_completion(done: dict, run: Path, record: Path, specs: list[str], args) -> dict:
     """``rescore`` of the completion figures (prediction is left as recorded)."""
     from meshseq.evaluate import completion_errors
 
@@ -196,7 +216,7 @@ def rescore_completion(done: dict, run: Path, record: Path, args) -> dict:
         gaps = [g for g in GAPS if hi - lo >= g + 2]
         block["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1)
 
-    return rescore(done, run, record, args, "completion", update)
+    return rescore(done, run, record, specs, args, "completion", update)
 
 
 def rescore_prediction(done: dict, run: Path, record: Path, specs: list[str], args) -> dict:
@@ -214,7 +234,7 @@ def rescore_prediction(done: dict, run: Path, record: Path, specs: list[str], ar
             block["prediction"][u]["ours"] = methods["ours"]
         block.update(motion_scores(model, verts, feats, train_level, lo, hi))
 
-    return rescore(done, run, record, args, "prediction", update)
+    return rescore(done, run, record, specs, args, "prediction", update)
 
 
 def train_vae_baseline(model, train_feats: np.ndarray):
