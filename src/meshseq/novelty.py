@@ -86,7 +86,7 @@ def fallback(given: np.ndarray, n_frames: int, decay: float = FALLBACK_DECAY) ->
     if x.shape[1] < 2:
         return np.repeat(last, int(n_frames), axis=1)
     k = np.arange(1, int(n_frames) + 1, dtype=np.float64)
-    reach = (1.0 - decay ** k) / (1.0 - decay)  # the velocity's summed share after k frames
+    reach = k if decay == 1.0 else (1.0 - decay ** k) / (1.0 - decay)  # the velocity's summed share
     velocity = x[:, -1:] - x[:, -2:-1]
     return last + reach.astype(x.dtype)[None, :, None, None] * velocity
 

@@ -1,0 +1,95 @@
+"""Prediction with and without the novelty guard (method.md, "Novelty guard") on chosen sequences.
+
+    python benchmarks/novelty_guard.py RUN --train SPEC,SPEC,... SPEC ... [--unseen squat,wave]
+        [--every 4] [--decays 0,0.5,0.9,1]
+
+For every sequence and 1 and 3 given frames (starts every ``--every`` frames over the whole
+sequence): the given frame's novelty (median [p10, p90]) and the error at h5 / h10 / h15 of the
+roll-out (``--guard off``) and of the guarded prediction, each over the best of zero velocity and
+linear ACAP extrapolation; then the means (and maxima) over the sequences of each group (``--unseen``:
+motions the run never trained on). ``--train``: the run's training sequences, from which the
+reference is made for a run stored without one (the training segments recorded in the run).
+``--decays``: also the fallback alone with each velocity damping (3 given frames).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+H = 15
+CELLS = [4, 9, 14]  # h5, h10, h15
+
+
+def errors(model, truth: np.ndarray, feats: np.ndarray) -> np.ndarray:
+    """Mean centroid-aligned error at h5 / h10 / h15 of predicted features ``(B, H, V, C)``."""
+    pred = model.vertices(feats.reshape(-1, *feats.shape[2:])).reshape(truth.shape)
+    return vertex_errors(pred, truth)
+
+
+def vertex_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Mean centroid-aligned error at h5 / h10 / h15 of predicted vertices ``(B, H, V, 3)``."""
+    from meshseq.align import per_vertex_error
+
+    err = per_vertex_error(pred.reshape(-1, *pred.shape[2:]), truth.reshape(-1, *truth.shape[2:]))
+    return err.mean(-1).reshape(truth.shape[:2])[:, CELLS].mean(0)
+
+
+def main() -> None:
+    import meshseq
+    from meshseq import baselines, novelty
+    from meshseq.data.windows import Split
+    from meshseq.evaluate import prediction_starts
+    from meshseq.io import load_sequence
+    from meshseq.synthesize import predict
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run")
+    p.add_argument("specs", nargs="+", help="sequences to predict")
+    p.add_argument("--train", required=True, help="the run's training sequences, comma-separated")
+    p.add_argument("--unseen", default="squat,wave,bend", help="motions the run never trained on")
+    p.add_argument("--every", type=int, default=4)
+    p.add_argument("--decays", default="", help="fallback dampings to score alone, comma-separated")
+    args = p.parse_args()
+    model = meshseq.load(args.run, backend="numpy")
+    if model.novelty is None:
+        splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
+        feats = [model.features(load_sequence(s).vertices.astype(np.float64)) for s in args.train.split(",")]
+        model.novelty = novelty.reference_latents(model.engine.encode, [f[a:b] for f, sp in zip(feats, splits)
+                                                                        for a, b in sp.train if b - a > 0])
+    decays = [float(d) for d in args.decays.split(",") if d]
+    groups: dict[str, list] = {}
+    for spec in args.specs:
+        verts = load_sequence(spec).vertices.astype(np.float64)
+        feats = model.features(verts)
+        for u in (1, 3):
+            starts = prediction_starts(0, len(verts), u, H, args.every)
+            given = np.stack([feats[s:s + u] for s in starts])
+            truth = np.stack([verts[s + u:s + u + H] for s in starts])
+            zero = np.repeat(verts[starts + u - 1][:, None], H, 1)
+            best = np.minimum(vertex_errors(zero, truth), errors(model, truth, baselines.linear_acap(given, H)))
+            nov = novelty.novelty(model.engine.encode(given.reshape(-1, *given.shape[2:])),
+                                  model.novelty).reshape(len(starts), u).max(1)
+            off = errors(model, truth, predict(model, given, H, guard=False)) / best
+            on = errors(model, truth, predict(model, given, H)) / best
+            alone = [errors(model, truth, novelty.fallback(given, H, d)) / best for d in decays] if u > 1 else []
+            unseen = any(spec.endswith("_" + m) for m in args.unseen.split(","))
+            groups.setdefault(f"{'untrained' if unseen else 'trained'} motions, u{u}", []).append((off, on, *alone))
+            print(f"{spec.split(':')[-1]:28s} u{u} novelty {np.median(nov):4.1f} [{np.percentile(nov, 10):.1f}, "
+                  f"{np.percentile(nov, 90):.1f}]  off {fmt(off)}  guarded {fmt(on)}"
+                  + "".join(f"  fallback {d} {fmt(a)}" for d, a in zip(decays, alone)), flush=True)
+    for name, rows in sorted(groups.items()):
+        a = np.array(rows)
+        print(f"{name}: off {fmt(a[:, 0].mean(0))} (max {fmt(a[:, 0].max(0))})  guarded {fmt(a[:, 1].mean(0))} "
+              f"(max {fmt(a[:, 1].max(0))})"
+              + "".join(f"  fallback {d} {fmt(a[:, 2 + i].mean(0))} (max {fmt(a[:, 2 + i].max(0))})"
+                        for i, d in enumerate(decays) if a.shape[1] > 2 + i))
+
+
+def fmt(x: np.ndarray) -> str:
+    return " / ".join(f"{v:.2f}" for v in x)
+
+
+if __name__ == "__main__":
+    main()
