@@ -45,6 +45,8 @@ def test_fallback_holds_one_frame_and_damps_the_velocity_of_two():
     assert np.allclose(steps[:, 1:], novelty.FALLBACK_DECAY * steps[:, :-1])
     reach = (out[:, -1] - two[:, -1]) / v
     assert np.all(reach < 1.0 / (1.0 - novelty.FALLBACK_DECAY))  # never past ten velocities
+    linear = novelty.fallback(two, 4, decay=1.0)  # no damping: linear extrapolation
+    assert np.allclose(linear, two[:, -1:] + np.arange(1, 5)[None, :, None, None] * v[:, None])
 
 
 def test_guarded_leaves_familiar_frames_alone_and_replaces_novel_ones():
