@@ -10,6 +10,10 @@ linear ACAP extrapolation; then the means (and maxima) over the sequences of eac
 motions the run never trained on). ``--train``: the run's training sequences, from which the
 reference is made for a run stored without one (the training segments recorded in the run).
 ``--decays``: also the fallback alone with each velocity damping (3 given frames).
+``--completion``: instead, completion from the keys alone (12 gaps of 5, 10, 20 and 30 frames per
+sequence) joined as the default (anchored), as the corrected crossfade, and as the corrected
+crossfade where both keys are familiar (the guard's weight, blended), each over the better linear
+interpolation.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ def main() -> None:
     p.add_argument("--unseen", default="squat,wave,bend", help="motions the run never trained on")
     p.add_argument("--every", type=int, default=4)
     p.add_argument("--decays", default="", help="fallback dampings to score alone, comma-separated")
+    p.add_argument("--completion", action="store_true", help="score completion joins instead")
     args = p.parse_args()
     model = meshseq.load(args.run, backend="numpy")
     if model.novelty is None:
@@ -58,6 +63,9 @@ def main() -> None:
         feats = [model.features(load_sequence(s).vertices.astype(np.float64)) for s in args.train.split(",")]
         model.novelty = novelty.reference_latents(model.engine.encode, [f[a:b] for f, sp in zip(feats, splits)
                                                                         for a, b in sp.train if b - a > 0])
+    if args.completion:
+        completion(model, args.specs)
+        return
     decays = [float(d) for d in args.decays.split(",") if d]
     groups: dict[str, list] = {}
     for spec in args.specs:
@@ -85,6 +93,45 @@ def main() -> None:
               f"(max {fmt(a[:, 1].max(0))})"
               + "".join(f"  fallback {d} {fmt(a[:, 2 + i].mean(0))} (max {fmt(a[:, 2 + i].max(0))})"
                         for i, d in enumerate(decays) if a.shape[1] > 2 + i))
+
+
+def completion(model, specs: list[str]) -> None:
+    """Per sequence and gap: anchored, corrected and novelty-trusted joins over the better interpolation."""
+    from meshseq import baselines, novelty
+    from meshseq.align import per_vertex_error
+    from meshseq.evaluate import context_chains
+    from meshseq.io import load_sequence
+    from meshseq.synthesize import assemble_vertices, join_chains
+
+    for spec in specs:
+        verts = load_sequence(spec).vertices.astype(np.float64)
+        feats = model.features(verts)
+        nov = novelty.novelty(model.engine.encode(feats), model.novelty)
+        cells = []
+        for gap in (5, 10, 20, 30):
+            starts = np.arange(0, len(verts) - gap - 1)
+            starts = starts[np.linspace(0, len(starts) - 1, min(12, len(starts))).astype(int)]
+            fw, bw, _ = context_chains(model, feats, starts, gap, 0)
+            anchored, corrected = join_chains(fw, bw, "anchored")[0], join_chains(fw, bw, "corrected")[0]
+            trust = novelty.guard_weight(np.maximum(nov[starts], nov[starts + gap + 1])).astype(np.float32)
+            joins = {"anchored": anchored, "corrected": corrected,
+                     "trusted": anchored + trust[:, None, None, None] * (corrected - anchored),
+                     "linear": np.stack([baselines.linear_interpolation(feats[a], feats[a + gap + 1], gap)
+                                         for a in starts])}
+
+            def error(frames_of) -> float:
+                return float(np.mean([per_vertex_error(frames_of(p, a)[1:-1], verts[a + 1:a + gap + 1]).mean()
+                                      for p, a in enumerate(starts)]))
+
+            def from_features(f):
+                return lambda p, a: assemble_vertices(model, f[p], {0: verts[a], gap + 1: verts[a + gap + 1]})
+
+            errs = {name: error(from_features(f)) for name, f in joins.items()}
+            best = min(errs["linear"], error(lambda p, a: baselines.linear_interpolation(verts[a], verts[a + gap + 1],
+                                                                                          gap)))
+            cells.append(f"gap {gap}: " + " ".join(f"{n} {errs[n] / best:.2f}" for n in ("anchored", "corrected",
+                                                                                          "trusted")))
+        print(f"{spec.split(':')[-1]:28s} " + " | ".join(cells), flush=True)
 
 
 def fmt(x: np.ndarray) -> str:
