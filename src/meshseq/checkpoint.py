@@ -5,9 +5,12 @@ A run folder ``RUN`` holds ``RUN/checkpoints/ITERATION/`` (zero-padded) folders,
 * ``model.safetensors``: ``model.<name>`` weights of the generator (with ``ema_decay``: their
   moving average, the delivered model), ``reference.vertices``
   ``(V, 3)`` float64 and ``reference.faces`` ``(F, 3)`` int64 (the mesh the features refer to, so
-  features can be turned back into vertices without the training data);
+  features can be turned back into vertices without the training data), and ``novelty.latents``
+  ``(N, L)`` float32 (the delivered model's latent means of the training frames: prediction's
+  novelty guard, ``meshseq.novelty``; runs stored before it lack it);
 * ``model.json``: format, iteration, model config, training config, feature scaling, mesh
-  topology hash, data set names and splits, and the SHA-256 of ``model.safetensors``;
+  topology hash, data set names and splits, the novelty reference's step and frame count, and the
+  SHA-256 of ``model.safetensors``;
 * ``state.safetensors``: Adam moments ``optim.<param name>.<key>``, the torch CPU generator state
   ``rng.torch`` (uint8) and, on CUDA, ``rng.cuda``; under DistributedDataParallel every other
   process's as ``rng.torch.rank<R>`` / ``rng.cuda.rank<R>`` (each rank draws its own noise);

@@ -28,9 +28,9 @@ import torch
 from torch import nn
 
 from meshseq import checkpoint as ckpt
+from meshseq.checkpoint_schema import NOVELTY_LATENTS
 from meshseq.data.windows import Split, WindowSampler, heldout_rows, split_frames
 from meshseq.errors import MeshseqError
-from meshseq.checkpoint_schema import NOVELTY_LATENTS
 from meshseq.mesh import Topology, topology_hash
 from meshseq.model import BDLSTM, ModelConfig
 from meshseq.novelty import NoveltyReference, reference_latents
