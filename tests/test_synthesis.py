@@ -13,7 +13,7 @@ from meshseq import baselines
 from meshseq.align import per_vertex_error
 from meshseq.cli import main
 from meshseq.data.synthetic import twisting_limb
-from meshseq.io import load_sequence, save_sequence
+from meshseq.io import MeshSequence, load_sequence, save_sequence
 
 
 @pytest.fixture(scope="module")
@@ -359,6 +359,30 @@ def test_evaluate_command_writes_the_tables_json(trained, tmp_path, capsys):
     assert r["completion"]["3"]["linear_vertices"] == pytest.approx(expect, rel=1e-9)
     assert any("Tan et al" in n for n in r["notes"])
     assert sorted(p.name for p in plots.iterdir()) == ["error_u1.png", "error_u2.png", "feature_change.png"]
+
+
+def test_predict_command_guards_against_frames_unlike_the_training_ones(model, trained, tmp_path, capsys):
+    """The limb stretched to twice its width: predict blends towards the fallback and says so in a
+    note; --guard off writes the roll-out alone, as the API's guard=False."""
+    from meshseq.synthesize import assemble_vertices, predict
+
+    run, _, seq = trained
+    data = tmp_path / "wide.npz"
+    save_sequence(MeshSequence(seq.vertices * np.array([2.0, 1.0, 1.0]), seq.faces, name="wide"), data)
+    given = load_sequence(data).vertices[20:23]
+    feats = model.features(given)
+    outs = {}
+    for guard in ("novelty", "off"):
+        out = tmp_path / f"{guard}.npz"
+        assert main(["predict", str(run), str(data), "--start", "20", "--given", "3", "--frames", "6",
+                     "--guard", guard, "-o", str(out)]) == 0
+        outs[guard] = load_sequence(out).vertices
+        printed = capsys.readouterr().out
+        assert ("unlike the training frames" in printed) == (guard == "novelty"), printed
+    free = assemble_vertices(model, np.concatenate([feats, predict(model, feats, 6, guard=False)]),
+                             {i: given[i] for i in range(3)})
+    assert np.allclose(outs["off"], free, atol=1e-5)
+    assert not np.allclose(outs["novelty"], outs["off"], atol=1e-4)
 
 
 def test_predict_and_complete_commands(trained, tmp_path, capsys):
