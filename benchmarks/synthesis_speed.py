@@ -11,7 +11,10 @@ and for 1 and 8 samples, prints:
 - reconstruction: ms per generated frame of ``assemble_vertices`` (features -> vertices through
   the keys) for all K samples, beside ``acap.Reconstructor.solve``'s time per frame on the same
   mesh measured in the same run (benchmarks/acap_speed.py's reconstruct figure);
-- the whole completion of a 30-frame gap through the Python API (``Model.complete``), warm.
+- the whole completion of a 30-frame gap through the Python API (``Model.complete``), warm;
+- for the numpy backend's one-sample step, where it goes: the two products with the big FC weight
+  (their GB/s against the copy rate) and the rest (mesh convolutions, LSTM, head): the measured
+  reason when the step misses its floor target.
 
 Each figure for both inference backends: ``numpy`` (``meshseq.numpy_net``: what ``meshseq predict``
 and ``complete`` run on CPU, and ``meshseq.load(run, backend="numpy")``) and ``torch`` (the
@@ -130,8 +133,31 @@ def time_command(run: str, data: str, repeat: int) -> float:
     return min(times)
 
 
+def time_fc_products(net: NumpyNet, rows: int, repeat: int) -> tuple[float, float]:
+    """Seconds of one step's two products with the big FC weight on the numpy backend for ``rows``
+    chains: the encoder's ``W x`` and the tied decoder's ``W^T h`` (as ``NumpyNet`` runs them below
+    ``COMPILED_MIN_CHAINS``)."""
+    rng = np.random.default_rng(0)
+    L, N = net.fc_weight.shape
+    xt = rng.standard_normal((rows, N)).astype(np.float32).T  # (N, rows), laid out as the step's frames
+    h = rng.standard_normal((rows, L)).astype(np.float32)
+    t_enc, _ = best_of(repeat, lambda: net._fc_encode(xt))
+    t_dec, _ = best_of(repeat, lambda: net._fc(h, net.fc_weight, net.dec_bias))
+    return t_enc, t_dec
+
+
+def step_split(model: Model, step: float, gbs: float, repeat: int) -> None:
+    """Print where the numpy backend's one-sample step goes: the FC products against the time their
+    bytes take at the copy rate, and the rest (mesh convolutions, LSTM, head)."""
+    t_enc, t_dec = time_fc_products(model.net, 2, repeat)
+    fc_bytes = 2 * 4 * model.net.fc_weight.size
+    print(f"        of the step: FC products {(t_enc + t_dec) * 1e3:5.2f} ms (encoder {t_enc * 1e3:.2f}, decoder "
+          f"{t_dec * 1e3:.2f}; {fc_bytes / (t_enc + t_dec) / 1e9:.1f} GB/s, {fc_bytes / (gbs * 1e9) * 1e3:.2f} ms at the "
+          f"copy rate), the rest (convolutions, LSTM, head) {(step - t_enc - t_dec) * 1e3:5.2f} ms")
+
+
 def time_backend(name: str, backend: str, model: Model, verts: np.ndarray, feats: np.ndarray, keys: np.ndarray,
-                 floor: float, solve_frame: float, repeat: int) -> list[tuple[str, float, float]]:
+                 floor: float, solve_frame: float, repeat: int, gbs: float) -> list[tuple[str, float, float]]:
     """Print one backend's figures at 1 and 8 samples; return its targets ``(what, value, limit)``."""
     targets, one_step = [], None
     for samples in (1, 8):
@@ -147,6 +173,8 @@ def time_backend(name: str, backend: str, model: Model, verts: np.ndarray, feats
         print(f"        of the API completion: roll-out {step * (GAP + 1):4.2f} s, reconstruction "
               f"{rec_frame * samples * (GAP + 2):4.2f} s, other "
               f"{t_api - step * (GAP + 1) - rec_frame * samples * (GAP + 2):4.2f} s")
+        if samples == 1 and isinstance(model.net, NumpyNet):
+            step_split(model, step, gbs, repeat)
         if samples == 1:
             targets.append((f"{name} {backend}: step at K=1 within 2x its floor", step / floor, 2.0))
         else:
@@ -191,7 +219,8 @@ def main() -> None:
               f"{floor * 1e3:.2f} ms; Reconstructor.solve {solve_frame * 1e3:.2f} ms/frame ({len(feats)} frames, "
               f"acap_speed's figure)")
         for backend in backends:
-            targets += time_backend(name, backend, models[backend], verts, feats, keys, floor, solve_frame, args.repeat)
+            targets += time_backend(name, backend, models[backend], verts, feats, keys, floor, solve_frame, args.repeat,
+                                    gbs)
     if args.command:
         t = time_command(*args.command, max(1, args.repeat // 2))
         print(f"command: meshseq complete {args.command[0]} {args.command[1]} --samples 8, {GAP}-frame gap: {t:.2f} s")
