@@ -65,12 +65,14 @@ def score_block(model, vae, verts: np.ndarray, feats: np.ndarray, train_feats: n
     frames' mean vertex motion per frame (``training_level``)."""
     from meshseq.evaluate import completion_errors
     from meshseq.pace import step_levels
+    from meshseq.synthesize import CONTEXT
 
     out = {"frames": [int(lo), int(hi)], "novelty": novelty(train_feats, feats[lo:hi]),
            "motion_level": float(np.mean(step_levels(verts[lo:hi])) / max(train_level, 1e-12)),
            "prediction": prediction_scores(model, vae, verts, feats, lo, hi, PREDICTION), "completion": {}}
     gaps = [g for g in GAPS if hi - lo >= g + 2]
-    out["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1)
+    out["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1,
+                                          context=CONTEXT)
     out.update(motion_scores(model, verts, feats, train_level, lo, hi))
     return out
 
@@ -210,11 +212,13 @@ def rescore(done: dict, run: Path, record: Path, specs: list[str], args, kind: s
 def rescore_completion(done: dict, run: Path, record: Path, specs: list[str], args) -> dict:
     """``rescore`` of the completion figures (prediction is left as recorded)."""
     from meshseq.evaluate import completion_errors
+    from meshseq.synthesize import CONTEXT
 
     def update(model, block, verts, feats):
         lo, hi = block["frames"]
         gaps = [g for g in GAPS if hi - lo >= g + 2]
-        block["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1)
+        block["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1,
+                                                context=CONTEXT)
 
     return rescore(done, run, record, specs, args, "completion", update)
 

@@ -202,6 +202,29 @@ def test_context_fit_trusts_frames_the_model_predicts_and_not_a_pose_held_still(
     assert np.isinf(context_fit(model, None, x[:1], None, x[:1])[0])
 
 
+def test_context_trust_needs_familiar_keys_and_frames_at_the_models_pace(model, trained):
+    """``context_trust``: training frames around training keys are trusted; the same keys with a
+    pose held still before them are not (pace 0), nor are keys the model never saw (negated
+    features); a model stored without the training latents falls back to ``context_fit``."""
+    import copy
+
+    from meshseq.synthesize import context_fit, context_pace, context_trust
+
+    f = model.features(trained[2].vertices)
+    before, key_a, key_b, after = f[None, 3:10], f[None, 10], f[None, 21], f[None, 22:29]
+    assert context_pace(model, f[None, 3:11])[0] == pytest.approx(1.0)
+    assert context_trust(model, before, key_a, after, key_b)[0]
+    still = np.repeat(f[None, 10:11], 7, 1)
+    assert context_pace(model, np.concatenate([still, key_a[:, None]], 1))[0] == 0.0
+    assert not context_trust(model, still, key_a, after, key_b)[0]
+    assert not context_trust(model, -before, -key_a, -after, -key_b)[0]
+    assert not context_trust(model, None, key_a, None, key_b)[0]
+    old = copy.copy(model)
+    old.novelty = None
+    np.testing.assert_array_equal(context_trust(old, before, key_a, after, key_b),
+                                  context_fit(model, before, key_a, after, key_b) < 1.0)
+
+
 def test_context_frames_warm_the_chains_and_trusted_pairs_keep_the_corrected_join(model, trained):
     from meshseq.synthesize import complete, join_chains, warm_chain_states
 
@@ -403,18 +426,19 @@ def test_predict_and_complete_commands(trained, tmp_path, capsys):
     assert sorted(p.name for p in many.iterdir()) == ["diversity.json", "sample_00.npz", "sample_01.npz", "sample_02.npz"]
     assert json.loads((many / "diversity.json").read_text())["mean_pairwise_vertex_distance"] > 0
     got = {}
-    for context in ("0", "7"):  # the frames of DATA around the keys warm the chains up
-        o = tmp_path / f"ctx{context}.npz"
-        assert main(["complete", str(run), str(data), "--keyframes", "10,21", "--method", "corrected",
-                     "--context", context, "-o", str(o)]) == 0
-        got[context] = load_sequence(o).vertices
-        assert np.array_equal(got[context][[0, -1]], seq.vertices[[10, 21]])
-    assert not np.allclose(got["0"], got["7"])
-    from meshseq.synthesize import complete_keyframes
+    for method, context in (("ours", "0"), ("ours", None), ("stitch", "0"), ("stitch", None)):
+        o = tmp_path / f"{method}{context}.npz"  # the default: 7 frames of DATA around the keys, for ours
+        assert main(["complete", str(run), str(data), "--keyframes", "10,21", "--method", method,
+                     *(["--context", context] if context else []), "-o", str(o)]) == 0
+        got[method, context] = load_sequence(o).vertices
+        assert np.array_equal(got[method, context][[0, -1]], seq.vertices[[10, 21]])
+    assert not np.allclose(got["ours", "0"], got["ours", None])  # the chains warmed up
+    np.testing.assert_array_equal(got["stitch", "0"], got["stitch", None])  # the paper's: the keys alone
     from meshseq.api import load
-    api = complete_keyframes(load(run), seq.vertices[[10, 21]], [10], method="corrected",
+    from meshseq.synthesize import complete_keyframes
+    api = complete_keyframes(load(run), seq.vertices[[10, 21]], [10],
                              before=seq.vertices[3:10], after=seq.vertices[22:29])[0]
-    np.testing.assert_allclose(got["7"], api, atol=1e-5)  # the command: numpy engine; the API: torch
+    np.testing.assert_allclose(got["ours", None], api, atol=1e-5)  # the command: numpy engine; the API: torch
     for method in ("cma", "linear"):
         o = tmp_path / f"{method}.npz"
         assert main(["complete", str(run), str(data), "--keyframes", "4,12", "--method", method,
@@ -568,8 +592,8 @@ def test_joining_all_pairs_at_once_equals_joining_each_pair(n):
 
 def test_batched_completion_errors_equal_the_per_start_reference(model, trained):
     """``evaluate.completion_errors`` runs every start's chains (and every start's samples) as one
-    roll-out; the reference completes each start alone with ``complete``, given the same frames
-    around the keys."""
+    roll-out; the reference completes each start alone with ``complete``, ours given the same
+    frames around the keys (the paper's stitch, the keys alone)."""
     from meshseq import evaluate
     from meshseq.synthesize import complete
 
@@ -585,8 +609,8 @@ def test_batched_completion_errors_equal_the_per_start_reference(model, trained)
         errs = []
         for s in starts:
             b = s + gap + 1
-            f = complete(model, feats[s], feats[b], gap, join=join, before=feats[s - 7:s],
-                         after=feats[b + 1:b + 1 + 7]).frames[0]
+            around = {"before": feats[s - 7:s], "after": feats[b + 1:b + 1 + 7]} if method == "ours" else {}
+            f = complete(model, feats[s], feats[b], gap, join=join, **around).frames[0]  # stitch: the keys alone
             verts = _assemble_one_frame_at_a_time(model, f, {0: v[s], gap + 1: v[s + gap + 1]})
             errs.append(per_vertex_error(verts[1:-1], v[s + 1:s + gap + 1]).mean() / evaluate.UNITS)
         assert got[method] == pytest.approx(np.mean(errs), rel=1e-6, abs=1e-3)  # abs: 1e-7 data units
@@ -606,6 +630,7 @@ def test_synthesis_commands_list_the_library_methods_without_importing_it():
     assert synth_cmds.PREDICTION_METHODS == baselines.PREDICTION_METHODS
     assert synth_cmds.COMPLETION_METHODS == baselines.COMPLETION_METHODS
     assert synth_cmds.PACES == synthesize.PACES
+    assert synth_cmds.CONTEXT == synthesize.CONTEXT
     assert set(synthesize.METHOD_JOINS) <= set(synth_cmds.COMPLETION_METHODS)
 
 

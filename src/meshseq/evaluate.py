@@ -170,9 +170,9 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
     """In-between errors (x 1e-4, centroid-aligned, mean over in-between frames and starts) for
     held-out gaps, and the diversity of ``samples`` random-state completions (ours).
 
-    With ``context`` > 0 the chains of ours and stitch are given up to that many frames of the
-    sequence before key a and after key b (``synthesize.complete``'s ``before`` / ``after``, the
-    command's ``--context``); the other methods always the keys alone.
+    With ``context`` > 0 the chains of ours are given up to that many frames of the sequence before
+    key a and after key b (``synthesize.complete``'s ``before`` / ``after``, the command's
+    ``--context``); the other methods always the keys alone.
 
     Returns ``{str(gap): {method: error, ..., "diversity": d, "starts": n}}``.
     """
@@ -207,14 +207,16 @@ def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int,
     roll-out from the trained initial states (what ``complete`` does for one gap; ``context_chains``),
     joined each way."""
     keys_a, keys_b = feats[starts], feats[starts + gap + 1]
-    out, chains = {}, None
+    out, chains = {}, {}
     for m in methods:
         if m == "linear_vertices":
             continue
         if m in METHOD_JOINS:
-            if chains is None:
-                chains = context_chains(model, feats, starts, gap, context)
-            f = join_chains(chains[0], chains[1], METHOD_JOINS[m], trusted=chains[2])[0]
+            frames_around = context if m == "ours" else 0  # (stitch and corrected: the keys alone)
+            if frames_around not in chains:
+                chains[frames_around] = context_chains(model, feats, starts, gap, frames_around)
+            fw, bw, trusted = chains[frames_around]
+            f = join_chains(fw, bw, METHOD_JOINS[m], trusted=trusted)[0]
             f[:, 0], f[:, -1] = keys_a, keys_b
         elif m == "cma":  # one optimisation per gap (each batches its population)
             f = np.stack([complete_cma(model, a, b, gap, max_evals=cma_evals, max_seconds=cma_seconds,

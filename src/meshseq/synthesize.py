@@ -123,13 +123,10 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
     if state is None:
         state = net.initial_state(bsz, 0)
     out = np.empty((bsz, int(n_frames)) + x.shape[2:], dtype=np.float32)
-    expected = []
-    for i in range(u - 1):  # warm-up on the given frames
-        state, guess = net.step(state, x[:, i], n_forward=bsz, sample=sample)
-        expected.append(_rms(guess - x[:, i]))
+    state, expected = _warm_up(net, state, x, sample)
     factor = None
     if pace == "given" and u > 1:
-        factor = pace_factor(_rms(x[:, 1:] - x[:, :-1]), np.stack(expected, 1))[:, None, None]
+        factor = pace_factor(_rms(x[:, 1:] - x[:, :-1]), expected)[:, None, None]
     cur = x[:, -1]
     for t in range(int(n_frames)):  # free-running; the time loop is the only Python loop
         prev = cur
@@ -152,6 +149,17 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         if bound is not None:
             np.clip(out, -bound, bound, out=out)
     return out[0] if single else out
+
+
+def _warm_up(net, state, x: np.ndarray, sample: bool = False):
+    """Feed frames ``x`` ``(B, U, V, C)`` but the last to the forward chains from ``state``:
+    ``(state', expected)``, ``expected`` ``(B, U-1)`` the RMS size of the step the model predicted
+    from each (what ``pace_factor`` compares the given steps with)."""
+    expected = []
+    for i in range(x.shape[1] - 1):
+        state, guess = net.step(state, x[:, i], n_forward=x.shape[0], sample=sample)
+        expected.append(_rms(guess - x[:, i]))
+    return state, (np.stack(expected, 1) if expected else np.zeros((x.shape[0], 0), np.float32))
 
 
 def novelty_weights(model, given: np.ndarray) -> np.ndarray | None:
@@ -286,15 +294,52 @@ def _side_fit(path: np.ndarray, rolled: np.ndarray) -> np.ndarray:
     return err(rolled[:, 2:]).mean(1) / np.maximum(np.minimum(still, constant), 1e-12)
 
 
+#: the slowest pace (``pace_factor`` of the frames around the keys) at which the chains are trusted
+PACE_TRUST = 0.8
+#: frames on each side of the keys that ``meshseq complete`` gives the chains (``--context``)
+CONTEXT = 7
+
+
+def context_pace(model, path: np.ndarray) -> np.ndarray:
+    """``(P,)`` ``pace_factor`` of frames ``path`` ``(P, n, V, C)`` (n >= 2, in time order) fed to
+    the model's forward chains from their trained state, as ``predict`` measures its given frames:
+    1 at the model's pace, less where the frames move slower than it expects."""
+    x = _frames(path)
+    _, expected = _warm_up(model.engine, model.engine.initial_state(x.shape[0], 0), x)
+    return pace_factor(_rms(x[:, 1:] - x[:, :-1]), expected)
+
+
+def context_trust(model, before, key_a, after, key_b) -> np.ndarray:
+    """``(P,)`` bool: whether the chains between P pairs of keys may keep their own motion (the
+    corrected join): both keys familiar (``meshseq.novelty``: the guard's weight is 1) and the frames
+    given around them (``before`` ``(P, U_a, V, C)`` up to ``key_a``, ``key_b`` then ``after``
+    ``(P, U_b, V, C)``) moving at the model's pace (``context_pace`` >= ``PACE_TRUST`` on each side
+    with frames; False where neither side has any). A model stored without the training frames'
+    latents: ``context_fit`` < 1 instead."""
+    if getattr(model, "novelty", None) is None:
+        return context_fit(model, before, key_a, after, key_b) < 1.0
+    a, b = _frames(key_a), _frames(key_b)
+    z = model.engine.encode(np.concatenate([a, b]))
+    familiar = novelty.guard_weight(novelty.novelty(z, model.novelty).reshape(2, -1).max(0)) >= 1.0
+    paces = []
+    if before is not None and np.shape(before)[1]:
+        paces.append(context_pace(model, np.concatenate([_frames(before), a[:, None]], 1)))
+    if after is not None and np.shape(after)[1]:
+        paces.append(context_pace(model, np.concatenate([b[:, None], _frames(after)], 1)))
+    if not paces:
+        return np.zeros(len(a), bool)
+    return familiar & (np.min(paces, axis=0) >= PACE_TRUST)
+
+
 def run_context_chains(model, keys_a, keys_b, n_between: int, state, before=None, after=None):
     """``run_chains`` from ``state`` warmed up on the frames around the keys (``warm_chain_states``;
-    ``before`` / ``after`` ``(P, U, V, C)`` or None), and ``trusted`` ``(P,)``: whether the model
-    predicts those frames better than the trivial predictions (``context_fit`` < 1); None where no
-    frames are given. Returns ``(forward, backward, trusted)``."""
+    ``before`` / ``after`` ``(P, U, V, C)`` or None), and ``trusted`` ``(P,)``: whether the chains
+    may keep their own motion (``context_trust``); None where no frames are given. Returns
+    ``(forward, backward, trusted)``."""
     trusted = None
     if before is not None or after is not None:
         state = warm_chain_states(model, state, before, after)
-        trusted = context_fit(model, before, keys_a, after, keys_b) < 1.0
+        trusted = context_trust(model, before, keys_a, after, keys_b)
     forward, backward = run_chains(model, keys_a, keys_b, n_between, state)
     return forward, backward, trusted
 
@@ -321,8 +366,8 @@ def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int
     """``(frames (P, n, V, C), meeting frames (P,), gaps (P,))`` of P chain pairs ``(P, n, V, C)``
     (``run_chains``) joined by ``join``, all pairs at once: what ``corrected_crossfade`` or
     ``stitch_chains`` give pair by pair, and for ``anchored`` the corrected frames drawn toward the
-    keys' straight line by ``reach_weights``, except the pairs ``trusted`` ``(P,)`` bool marks (the
-    model predicts the frames around their keys: ``context_fit``), which keep the corrected join;
+    keys' straight line by ``reach_weights``, except the pairs ``trusted`` ``(P,)`` bool marks
+    (``context_trust``), which keep the corrected join;
     ``meeting``/``gap``: where the raw chains agree best (``stitch_chains``' choice), whatever the join."""
     pairs, n = forward.shape[:2]
     back = backward[:, ::-1]  # forward time order: back[:, -1] = key b
@@ -455,9 +500,9 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
             ``stitch`` / ``gap`` of the result are the raw chains' meeting frame and distance
             either way.
         before, after: ``(U_a, V, 9)`` / ``(U_b, V, 9)`` scaled features of the frames given just
-            before key a / just after key b (time order; docs/method.md measured 7). The
-            chains warm up on them (``warm_chain_states``), and where the model predicts them
-            better than standing still and constant velocity (``context_fit`` < 1) the
+            before key a / just after key b (time order; ``CONTEXT`` frames by default in the
+            command). The chains warm up on them (``warm_chain_states``), and where the keys are
+            familiar and those frames move at the model's pace (``context_trust``) the
             ``anchored`` join keeps the chains' own motion (the corrected join) instead of
             drawing it toward the line.
     """
@@ -538,8 +583,9 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
             ``linear_vertices`` (straight lines between the keys' vertices).
         samples: completions from random initial states (``ours`` only; 1 = the trained states).
         before, after: ``(U_a, V, 3)`` / ``(U_b, V, 3)`` frames given just before the first key and
-            just after the last (time order): the first gap's forward chain and the last gap's
-            backward chain warm up on them (``complete``'s ``before`` / ``after``; ours and stitch).
+            just after the last (time order): with ``ours``, the first gap's forward chain and the
+            last gap's backward chain warm up on them (``complete``'s ``before`` / ``after``); the
+            other methods use the keys alone (``stitch`` is the paper's).
     Returns:
         ``(samples, K + sum(gaps), V, 3)`` vertices, exactly the keys at the key frames.
     """
@@ -553,8 +599,8 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
     if method == "linear_vertices":
         parts = [linear_interpolation(keys[i], keys[i + 1], gap)[int(i > 0):] for i, gap in enumerate(gaps)]
         return np.concatenate(parts)[None]
-    chains = method in METHOD_JOINS
-    key_f, ctx_a, ctx_b = keyframe_features(model, keys, before if chains else None, after if chains else None)
+    ours = method == "ours"
+    key_f, ctx_a, ctx_b = keyframe_features(model, keys, before if ours else None, after if ours else None)
     parts, anchors, offset = [], {0: keys[0]}, 0
     for i, gap in enumerate(gaps):  # per gap; all samples of a gap run as one batched roll-out
         if method in METHOD_JOINS:

@@ -20,6 +20,8 @@ COMPLETION_METHODS = ("ours", "corrected", "stitch", "cma", "linear", "linear_ve
 PACES = ("given", "model")
 #: prediction's guard against given frames unlike the training frames (``meshseq.novelty``)
 GUARDS = ("novelty", "off")
+#: ``meshseq.synthesize.CONTEXT`` (the same check)
+CONTEXT = 7
 
 
 def register(sub) -> None:
@@ -55,11 +57,11 @@ def register(sub) -> None:
                    help="increasing frame numbers of DATA to keep as keys")
     p.add_argument("--between", type=int, default=None, metavar="N",
                    help="frames to generate between consecutive keys (default: as many as DATA has there)")
-    p.add_argument("--context", type=int, default=0, metavar="N",
-                   help="frames of DATA before the first key and after the last that the chains warm up "
-                   "on; where the model predicts them better than standing still and constant velocity, "
-                   "ours keeps the chains' motion. Try 7 for a motion the model was trained on; on motions "
-                   "it never saw it can be worse than interpolation (default 0: the keys alone)")
+    p.add_argument("--context", type=int, default=CONTEXT, metavar="N",
+                   help=f"frames of DATA before the first key and after the last that ours' chains warm up on "
+                   f"(default {CONTEXT}); where the keys look like the training frames and these frames move at "
+                   "the model's pace, ours keeps the chains' own motion instead of drawing it toward the "
+                   "straight line between the keys. 0: the keys alone")
     p.add_argument("--samples", type=int, default=1, metavar="K",
                    help="K completions from random initial states (default 1: the trained states)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
@@ -371,7 +373,7 @@ def cmd_evaluate(args) -> int:
     if gaps:
         result["completion"] = evaluate.completion_errors(
             model, vertices, feats, lo, hi, gaps, list(baselines.COMPLETION_METHODS), samples=args.samples,
-            cma_evals=args.cma_evals, cma_seconds=args.cma_seconds)
+            cma_evals=args.cma_evals, cma_seconds=args.cma_seconds, context=CONTEXT)
     _print_tables(result, horizons)
     if args.json_out:
         with atomic_output(args.json_out, force=args.force) as tmp:
