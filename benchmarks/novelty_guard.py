@@ -10,10 +10,11 @@ linear ACAP extrapolation; then the means (and maxima) over the sequences of eac
 motions the run never trained on). ``--train``: the run's training sequences, from which the
 reference is made for a run stored without one (the training segments recorded in the run).
 ``--decays``: also the fallback alone with each velocity damping (3 given frames).
-``--completion``: instead, completion from the keys alone (12 gaps of 5, 10, 20 and 30 frames per
-sequence) joined as the default (anchored), as the corrected crossfade, and as the corrected
-crossfade where both keys are familiar (the guard's weight, blended), each over the better linear
-interpolation.
+``--completion``: instead, completion (12 gaps of 5, 10, 20 and 30 frames per sequence, 7 frames
+on both sides) over the better linear interpolation: ours from the keys alone; the corrected
+crossfade where both keys are familiar (the guard's weight, blended); ours warmed up on the 7
+frames around the keys, trusting the chains by ``context_fit`` (runs without the training latents)
+and by ``context_trust`` (the default).
 """
 
 from __future__ import annotations
@@ -96,41 +97,51 @@ def main() -> None:
 
 
 def completion(model, specs: list[str]) -> None:
-    """Per sequence and gap: anchored, corrected and novelty-trusted joins over the better interpolation."""
+    """Per sequence and gap, ours over the better interpolation: from the keys alone, corrected
+    where the keys are familiar (keys alone), and warmed up on 7 frames around the keys trusting
+    the chains by ``context_fit`` (a run without the training latents) or by ``context_trust`` (the
+    default); 12 gaps per length, each with 7 frames on both sides."""
+    import copy
+
     from meshseq import baselines, novelty
     from meshseq.align import per_vertex_error
-    from meshseq.evaluate import context_chains
+    from meshseq.evaluate import completion_errors, context_chains
     from meshseq.io import load_sequence
-    from meshseq.synthesize import assemble_vertices, join_chains
+    from meshseq.synthesize import CONTEXT, assemble_vertices, join_chains
 
+    without = copy.copy(model)
+    without.novelty = None
     for spec in specs:
         verts = load_sequence(spec).vertices.astype(np.float64)
         feats = model.features(verts)
         nov = novelty.novelty(model.engine.encode(feats), model.novelty)
+        lo, hi = CONTEXT, len(verts) - CONTEXT
         cells = []
         for gap in (5, 10, 20, 30):
-            starts = np.arange(0, len(verts) - gap - 1)
+            def ours(m, context: int) -> float:
+                r = completion_errors(m, verts, feats, lo, hi, [gap], ["ours", "linear", "linear_vertices"],
+                                      samples=1, max_starts=12, context=context)[str(gap)]
+                return r["ours"] / min(r["linear"], r["linear_vertices"])
+
+            starts = np.arange(lo, hi - gap - 1)
             starts = starts[np.linspace(0, len(starts) - 1, min(12, len(starts))).astype(int)]
             fw, bw, _ = context_chains(model, feats, starts, gap, 0)
             anchored, corrected = join_chains(fw, bw, "anchored")[0], join_chains(fw, bw, "corrected")[0]
-            trust = novelty.guard_weight(np.maximum(nov[starts], nov[starts + gap + 1])).astype(np.float32)
-            joins = {"anchored": anchored, "corrected": corrected,
-                     "trusted": anchored + trust[:, None, None, None] * (corrected - anchored),
-                     "linear": np.stack([baselines.linear_interpolation(feats[a], feats[a + gap + 1], gap)
-                                         for a in starts])}
+            familiar = novelty.guard_weight(np.maximum(nov[starts], nov[starts + gap + 1])).astype(np.float32)
+            blended = anchored + familiar[:, None, None, None] * (corrected - anchored)
 
-            def error(frames_of) -> float:
-                return float(np.mean([per_vertex_error(frames_of(p, a)[1:-1], verts[a + 1:a + gap + 1]).mean()
+            def error(f) -> float:
+                return float(np.mean([per_vertex_error(assemble_vertices(model, f[p], {0: verts[a], gap + 1:
+                                      verts[a + gap + 1]})[1:-1], verts[a + 1:a + gap + 1]).mean()
                                       for p, a in enumerate(starts)]))
 
-            def from_features(f):
-                return lambda p, a: assemble_vertices(model, f[p], {0: verts[a], gap + 1: verts[a + gap + 1]})
-
-            errs = {name: error(from_features(f)) for name, f in joins.items()}
-            best = min(errs["linear"], error(lambda p, a: baselines.linear_interpolation(verts[a], verts[a + gap + 1],
-                                                                                          gap)))
-            cells.append(f"gap {gap}: " + " ".join(f"{n} {errs[n] / best:.2f}" for n in ("anchored", "corrected",
-                                                                                          "trusted")))
+            lines = min(error(np.stack([baselines.linear_interpolation(feats[a], feats[a + gap + 1], gap)
+                                        for a in starts])),
+                        float(np.mean([per_vertex_error(baselines.linear_interpolation(
+                            verts[a], verts[a + gap + 1], gap)[1:-1], verts[a + 1:a + gap + 1]).mean()
+                            for a in starts])))
+            cells.append(f"gap {gap}: keys {ours(model, 0):.2f} familiar-corrected {error(blended) / lines:.2f} "
+                         f"context/fit {ours(without, CONTEXT):.2f} context/trust {ours(model, CONTEXT):.2f}")
         print(f"{spec.split(':')[-1]:28s} " + " | ".join(cells), flush=True)
 
 
