@@ -434,6 +434,12 @@ def test_predict_and_complete_commands(trained, tmp_path, capsys):
         assert np.array_equal(got[method, context][[0, -1]], seq.vertices[[10, 21]])
     assert not np.allclose(got["ours", "0"], got["ours", None])  # the chains warmed up
     np.testing.assert_array_equal(got["stitch", "0"], got["stitch", None])  # the paper's: the keys alone
+    for context in ("0", "7"):  # samples from random states: the keys alone either way
+        assert main(["complete", str(run), str(data), "--keyframes", "10,21", "--samples", "2", "--context", context,
+                     "-o", str(tmp_path / f"samples{context}")]) == 0
+    for name in ("sample_00.npz", "sample_01.npz"):
+        np.testing.assert_array_equal(load_sequence(tmp_path / "samples0" / name).vertices,
+                                      load_sequence(tmp_path / "samples7" / name).vertices)
     from meshseq.api import load
     from meshseq.synthesize import complete_keyframes
     api = complete_keyframes(load(run), seq.vertices[[10, 21]], [10],
