@@ -383,6 +383,27 @@ def test_edited_checkpoint_is_one_line_naming_file_and_field(case, good_checkpoi
     assert not ckpt.is_valid(folder)
 
 
+def test_checkpoint_stored_before_the_novelty_reference_loads_and_predicts_unguarded(good_checkpoint, limb, tmp_path):
+    """A run written before checkpoints held the training frames' latents (no ``novelty`` in
+    model.json, no ``novelty.latents``): both backends load it, its ``novelty`` is None, and
+    prediction is the roll-out alone."""
+    import shutil
+
+    from meshseq.api import load
+    from meshseq.synthesize import predict
+
+    folder = tmp_path / good_checkpoint.name
+    shutil.copytree(good_checkpoint, folder)
+    assert load(folder).novelty is not None
+    _edit_json(M, _delete(["novelty"]))(folder)
+    _edit_tensors(MT, lambda t: t.pop("novelty.latents"))(folder)
+    for backend in ("torch", "numpy"):
+        model = load(folder, backend=backend)
+        assert model.novelty is None
+        x = model.features(limb[0].vertices[:3])
+        np.testing.assert_array_equal(predict(model, x, 4), predict(model, x, 4, guard=False))
+
+
 def test_edited_checkpoint_through_the_commands(good_checkpoint, limb, tmp_path, capsys):
     """meshseq predict and train --resume: exit 2 and one line, no traceback, nothing written."""
     import shutil
