@@ -387,7 +387,8 @@ def generalization_section(files: list[Path]) -> list[str]:
             "in typical training steps (1 = one step away). Motion: the block's mean vertex motion per frame over "
             "the training part's. Prediction: ours (`predict`'s default, the novelty guard included: "
             "[method.md](method.md#5-synthesis)) over the best of zero velocity, linear ACAP extrapolation and "
-            "the VAE latent (centroid-aligned; rigid: also rotation-aligned). Completion: ours over the better "
+            "the VAE latent (centroid-aligned; rigid: also rotation-aligned). Completion: ours (`complete`'s default, "
+            "7 frames around the keys included) over the better "
             "linear interpolation (ACAP features or vertices) between keys that far apart. Motion of 50: the "
             "feature change of 50 generated frames over the truth's. -: the block is shorter than the horizon or gap "
             "needs (horse-gallop's held-out end is its last 10 frames).", "",
