@@ -13,6 +13,7 @@ from meshseq import baselines
 from meshseq.align import per_vertex_error
 from meshseq.cli import main
 from meshseq.data.synthetic import twisting_limb
+from meshseq.errors import MeshseqError
 from meshseq.io import MeshSequence, load_sequence, save_sequence
 
 
@@ -104,6 +105,8 @@ def test_prediction_from_frames_unlike_the_training_ones_falls_back(model, train
     assert np.allclose(out, np.clip(novelty.guarded(free[None], far[None], weight)[0], -1, 1), atol=1e-6)
     base = novelty.fallback(far[None], 10)[0]
     assert np.abs(out - base).max() < 0.5 * np.abs(free - base).max()
+    np.testing.assert_array_equal(model.predict(far, 10), out)  # the API: guarded unless asked
+    np.testing.assert_array_equal(model.predict(far, 10, guard=False), free)
 
 
 def test_pace_factor_compares_given_steps_with_the_expected_ones():
@@ -445,6 +448,10 @@ def test_predict_and_complete_commands(trained, tmp_path, capsys):
     api = complete_keyframes(load(run), seq.vertices[[10, 21]], [10],
                              before=seq.vertices[3:10], after=seq.vertices[22:29])[0]
     np.testing.assert_allclose(got["ours", None], api, atol=1e-5)  # the command: numpy engine; the API: torch
+    method = load(run).complete(seq.vertices[[10, 21]], 10, before=seq.vertices[3:10], after=seq.vertices[22:29])[0]
+    np.testing.assert_array_equal(method, api)
+    with pytest.raises(MeshseqError, match="before must be"):
+        load(run).complete(seq.vertices[[10, 21]], 10, before=seq.vertices[3])
     for method in ("cma", "linear"):
         o = tmp_path / f"{method}.npz"
         assert main(["complete", str(run), str(data), "--keyframes", "4,12", "--method", method,

@@ -227,13 +227,14 @@ class Model:
 
     # -- synthesis (see meshseq.synthesize) ---------------------------------------------------
 
-    def predict(self, frames, n_frames: int, sample: bool = False, pace: str = "given") -> np.ndarray:
+    def predict(self, frames, n_frames: int, sample: bool = False, pace: str = "given",
+                guard: bool = True) -> np.ndarray:
         """Continue a motion.
 
         ``frames``: given vertices ``(U, V, 3)`` -> vertices ``(U + n, V, 3)``: the given frames
         (exactly), then ``n`` generated ones continuing from the last; or scaled features
-        ``(U, V, 9)`` -> the generated features ``(n, V, 9)``. ``pace``: see
-        ``meshseq.synthesize.predict``.
+        ``(U, V, 9)`` -> the generated features ``(n, V, 9)``. ``pace`` and ``guard`` (the novelty
+        guard; False: the roll-out alone): see ``meshseq.synthesize.predict``.
         """
         from meshseq import synthesize
 
@@ -243,10 +244,10 @@ class Model:
             raise MeshseqError(f"frames must be (U, {self.config.n_vertices}, 3) vertices or (U, "
                                f"{self.config.n_vertices}, {c}) scaled features, got shape {f.shape}")
         if f.shape[-1] == c:
-            return synthesize.predict(self, f, n_frames, sample=sample, pace=pace)
+            return synthesize.predict(self, f, n_frames, sample=sample, pace=pace, guard=guard)
         given = np.asarray(f, dtype=np.float64)
         feats = self.features(given)
-        gen = synthesize.predict(self, feats, n_frames, sample=sample, pace=pace)
+        gen = synthesize.predict(self, feats, n_frames, sample=sample, pace=pace, guard=guard)
         return synthesize.assemble_vertices(self, np.concatenate([feats, gen]),
                                             {i: given[i] for i in range(len(given))})
 
@@ -271,12 +272,18 @@ class Model:
         return synthesize.assemble_vertices(self, np.concatenate([np.repeat(feats[None], len(gen), 0), gen], 1),
                                             {i: f[i] for i in range(len(f))})
 
-    def complete(self, keyframes, lengths, samples: int = 1, seed: int | None = None) -> np.ndarray:
+    def complete(self, keyframes, lengths, samples: int = 1, seed: int | None = None,
+                 before=None, after=None) -> np.ndarray:
         """Fill the gaps between keyframes ``(K, V, 3)`` (vertices).
 
         ``lengths``: frames to generate between consecutive keys (one int for all gaps, or K-1).
+        ``before`` / ``after``: vertices ``(U, V, 3)`` of the frames just before the first key and
+        just after the last, if there are any (``meshseq complete`` gives 7 of DATA's): one
+        completion warms its chains up on them and keeps their own motion where they are
+        trustworthy (``meshseq.synthesize.context_trust``).
         Returns ``(samples, T, V, 3)`` vertices passing exactly through every key
-        (``T = K + sum(lengths)``); several samples come from random initial states.
+        (``T = K + sum(lengths)``); several samples come from random initial states (and use the
+        keys alone).
         """
         from meshseq import synthesize
 
@@ -291,7 +298,12 @@ class Model:
         gaps = [int(lengths)] * (len(keys) - 1) if np.ndim(lengths) == 0 else [int(g) for g in lengths]
         if len(gaps) != len(keys) - 1:
             raise MeshseqError(f"lengths: expected one number or {len(keys) - 1}, got {len(gaps)}")
-        return synthesize.complete_keyframes(self, keys, gaps, samples=samples, seed=0 if seed is None else seed)
+        around = [None if c is None else np.asarray(c, dtype=np.float64) for c in (before, after)]
+        for name, c in zip(("before", "after"), around):
+            if c is not None and (c.ndim != 3 or c.shape[1:] != keys.shape[1:]):
+                raise MeshseqError(f"{name} must be (U, {keys.shape[1]}, 3) vertices, got shape {c.shape}")
+        return synthesize.complete_keyframes(self, keys, gaps, samples=samples, seed=0 if seed is None else seed,
+                                             before=around[0], after=around[1])
 
 
 def load(run: str | os.PathLike, device: str = "cpu", backend: str = "torch") -> Model:
