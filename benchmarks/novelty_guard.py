@@ -20,8 +20,13 @@ and by ``context_trust`` (the default).
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from generalize import ensure_novelty  # noqa: E402  (a sibling script: a run's reference made as it scores)
 
 H = 15
 CELLS = [4, 9, 14]  # h5, h10, h15
@@ -59,11 +64,7 @@ def main() -> None:
     p.add_argument("--completion", action="store_true", help="score completion joins instead")
     args = p.parse_args()
     model = meshseq.load(args.run, backend="numpy")
-    if model.novelty is None:
-        splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
-        feats = [model.features(load_sequence(s).vertices.astype(np.float64)) for s in args.train.split(",")]
-        model.novelty = novelty.reference_latents(model.engine.encode, [f[a:b] for f, sp in zip(feats, splits)
-                                                                        for a, b in sp.train if b - a > 0])
+    ensure_novelty(model, args.train.split(","), [Split.from_dict(d["split"]) for d in model.meta["datasets"]])
     if args.completion:
         completion(model, args.specs)
         return

@@ -319,8 +319,7 @@ def context_trust(model, before, key_a, after, key_b) -> np.ndarray:
     if getattr(model, "novelty", None) is None:
         return context_fit(model, before, key_a, after, key_b) < 1.0
     a, b = _frames(key_a), _frames(key_b)
-    z = model.engine.encode(np.concatenate([a, b]))
-    familiar = novelty.guard_weight(novelty.novelty(z, model.novelty).reshape(2, -1).max(0)) >= 1.0
+    familiar = novelty_weights(model, np.stack([a, b], axis=1)) >= 1.0  # the guard's weight of both keys
     paces = []
     if before is not None and np.shape(before)[1]:
         paces.append(context_pace(model, np.concatenate([_frames(before), a[:, None]], 1)))
