@@ -173,18 +173,19 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
 
 
 def ensure_novelty(model, specs: list[str], splits) -> str:
-    """Give a model stored before checkpoints held the training frames' latents (``meshseq.novelty``)
-    the reference training would have stored: its latents of the training segments of ``specs``.
-    Returns where the reference came from (for the record)."""
+    """Give a model stored before checkpoints held the training frames' latents and their steps
+    (``meshseq.novelty``) the reference training would have stored: its latents of the training
+    segments of ``specs``. Returns where the reference came from (for the record)."""
     from meshseq.io import load_sequence
     from meshseq.novelty import reference_latents
 
-    if model.novelty is not None:
+    if model.novelty is not None and model.novelty.steps is not None:
         return "stored"
+    stored = model.novelty is not None
     feats = [model.features(load_sequence(spec).vertices.astype(np.float64)) for spec in specs]
     model.novelty = reference_latents(model.engine.encode, [f[a:b] for f, split in zip(feats, splits)
                                                             for a, b in split.train if b - a > 0])
-    return "made when scored"
+    return "latents stored, steps made when scored" if stored else "made when scored"
 
 
 def rescore(done: dict, run: Path, record: Path, specs: list[str], args, kind: str, update) -> dict:

@@ -352,6 +352,9 @@ SCHEMA_CASES = {
                                 "lacks tensor novelty.latents"),
     "NaN novelty latent": (_edit_tensors(MT, lambda t: t["novelty.latents"].__setitem__((0, 0), float("nan"))), MT,
                            "novelty.latents: non-finite"),
+    "novelty steps missing": (_edit_tensors(MT, lambda t: t.pop("novelty.steps")), MT, "lacks tensor novelty.steps"),
+    "novelty steps of another shape": (_edit_tensors(MT, lambda t: t.update(
+        {"novelty.steps": t["novelty.steps"][:2].contiguous()})), MT, "novelty.steps: torch.float32"),
     "novelty without its latents' count": (_edit_json(M, _delete(["novelty", "frames"])), M, "novelty.frames: missing"),
     "novelty step zero": (_edit_json(M, _set(["novelty", "step"], 0.0)), M, "novelty: step 0.0"),
     "not safetensors": (_raw_tensors(MT, b"\x08\x00\x00\x00\x00\x00\x00\x00{garbage"), MT, "not a safetensors file"),
@@ -396,12 +399,34 @@ def test_checkpoint_stored_before_the_novelty_reference_loads_and_predicts_ungua
     shutil.copytree(good_checkpoint, folder)
     assert load(folder).novelty is not None
     _edit_json(M, _delete(["novelty"]))(folder)
-    _edit_tensors(MT, lambda t: t.pop("novelty.latents"))(folder)
+    _edit_tensors(MT, lambda t: (t.pop("novelty.latents"), t.pop("novelty.steps")))(folder)
     for backend in ("torch", "numpy"):
         model = load(folder, backend=backend)
         assert model.novelty is None
         x = model.features(limb[0].vertices[:3])
         np.testing.assert_array_equal(predict(model, x, 4), predict(model, x, 4, guard=False))
+
+
+def test_checkpoint_stored_before_the_training_steps_guards_by_the_pose_alone(good_checkpoint, limb, tmp_path):
+    """A run written with the training frames' latents but not their steps (``novelty.steps``
+    absent from both files) loads with ``steps`` None and predicts as the pose guard alone says."""
+    import shutil
+
+    from meshseq.api import load
+    from meshseq.novelty import NoveltyReference
+    from meshseq.synthesize import predict
+
+    folder = tmp_path / good_checkpoint.name
+    shutil.copytree(good_checkpoint, folder)
+    full = load(folder, backend="numpy")
+    _edit_json(M, _delete(["novelty", "steps"]))(folder)
+    _edit_tensors(MT, lambda t: t.pop("novelty.steps"))(folder)
+    model = load(folder, backend="numpy")
+    assert model.novelty.steps is None
+    np.testing.assert_array_equal(model.novelty.latents, full.novelty.latents)
+    x = model.features(limb[0].vertices[:3])
+    full.novelty = NoveltyReference(full.novelty.latents, full.novelty.step)  # the same reference, steps dropped
+    np.testing.assert_array_equal(predict(model, x, 4), predict(full, x, 4))
 
 
 def test_edited_checkpoint_through_the_commands(good_checkpoint, limb, tmp_path, capsys):

@@ -16,8 +16,10 @@ def test_reference_keeps_every_latent_and_the_median_step():
     ref = novelty.reference_latents(encode, [seq, seq[:1]])
     assert ref.latents.shape == (6, 2) and ref.latents.dtype == np.float32
     assert ref.step == pytest.approx(np.sqrt(2.0))
+    assert np.allclose(ref.steps[:5], 1.0) and np.array_equal(ref.steps[5], [0.0, 0.0])  # one frame: no step
     thinned = novelty.reference_latents(encode, [seq], max_frames=3)
     assert np.array_equal(thinned.latents[:, 0], [0.0, 2.0, 4.0])  # evenly spaced, ends kept
+    assert thinned.steps.shape == (3, 2)
     with pytest.raises(ValueError, match="two frames"):
         novelty.reference_latents(encode, [seq[:1]])
 
@@ -26,6 +28,21 @@ def test_novelty_is_the_nearest_distance_in_steps():
     ref = NoveltyReference(np.array([[0.0, 0.0], [10.0, 0.0]], np.float32), step=2.0)
     z = np.array([[[0.0, 0.0], [10.0, 6.0]], [[4.0, 3.0], [5.0, 0.0]]])  # (2, 2, L)
     assert np.allclose(novelty.novelty(z, ref), [[0.0, 3.0], [2.5, 2.5]])
+
+
+def test_direction_familiarity_compares_with_the_steps_of_the_nearest_training_frames():
+    # training: near the origin it moved along +x; near (10, 0) along +y
+    lat = np.array([[0.0, 0.0], [1.0, 0.0], [10.0, 0.0], [10.0, 1.0]], np.float32)
+    steps = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]], np.float32)
+    ref = NoveltyReference(lat, 1.0, steps)
+    last = np.array([[0.5, 0.0], [0.5, 0.0], [0.5, 0.0], [10.0, 0.5], [0.5, 0.0]])
+    prev = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, -0.5], [9.5, 0.5], [0.5, 0.0]])
+    cos = novelty.direction_familiarity(last, prev, ref, neighbours=2)
+    assert np.allclose(cos, [1.0, -1.0, 0.0, 0.0, 1.0])  # along, against, across, across; held: 1
+    assert np.allclose(novelty.direction_familiarity(last[3:4], prev[3:4], ref, neighbours=4), 1.0)  # +x is near too
+    w = novelty.direction_weight(np.array([1.0, novelty.DIRECTION_END, 0.8, novelty.DIRECTION_START, -1.0]))
+    assert np.allclose(w, [1.0, 1.0, (0.8 - novelty.DIRECTION_START) / (novelty.DIRECTION_END - novelty.DIRECTION_START),
+                           0.0, 0.0])
 
 
 def test_guard_weight_falls_from_one_to_zero_between_start_and_end():

@@ -84,11 +84,39 @@ def test_novelty_reference_is_the_training_frames_and_the_guard_spares_them(mode
     assert ref is not None and ref.latents.shape == (len(frames), model.config.latent)
     assert np.allclose(ref.latents, model.engine.encode(frames), atol=1e-4)
     assert np.abs(novelty.novelty(model.engine.encode(frames), ref)).max() < 1e-2
+    z = model.engine.encode(frames)
+    if len(split) == 1:  # each frame's latent step from the one before (the first: to the one after)
+        assert np.allclose(ref.steps[1:], np.diff(z, axis=0), atol=1e-4) and np.allclose(ref.steps[0], z[1] - z[0], atol=1e-4)
     cpu = load(trained[0], backend="numpy")
     assert np.array_equal(cpu.novelty.latents, ref.latents) and cpu.novelty.step == ref.step
+    assert np.array_equal(cpu.novelty.steps, ref.steps)
     x = model.features(v[20:23])
     assert np.all(novelty_weights(model, x[None]) == 1.0)
     assert np.array_equal(predict(model, x, 8), predict(model, x, 8, guard=False))
+
+
+def test_prediction_heading_where_training_never_went_falls_back(model, trained):
+    """Training frames given in their order, against a reference whose steps all point across the
+    given step: every pose is familiar but the direction is not, so 3 given frames get the fallback
+    while 1 given frame (no direction) keeps the roll-out."""
+    import copy
+
+    from meshseq import novelty
+    from meshseq.synthesize import novelty_weights, predict
+
+    x = model.features(trained[2].vertices[20:23])
+    z = model.engine.encode(x[-2:]).astype(np.float64)
+    given_step = z[1] - z[0]
+    across = np.random.default_rng(0).normal(size=given_step.shape)
+    across -= (across @ given_step) / (given_step @ given_step) * given_step
+    crossing = copy.copy(model)
+    ref = model.novelty
+    crossing.novelty = novelty.NoveltyReference(ref.latents, ref.step,
+                                                np.repeat(across[None], len(ref.latents), 0).astype(np.float32))
+    assert novelty_weights(model, x[None])[0] == 1.0 and novelty_weights(crossing, x[None])[0] == 0.0
+    out = predict(crossing, x, 6)
+    assert np.allclose(out, np.clip(novelty.fallback(x[None], 6)[0], -1, 1), atol=1e-6)
+    assert np.array_equal(predict(crossing, x[-1:], 6), predict(model, x[-1:], 6, guard=False))
 
 
 def test_prediction_from_frames_unlike_the_training_ones_falls_back(model, trained):

@@ -7,9 +7,11 @@ A run folder ``RUN`` holds ``RUN/checkpoints/ITERATION/`` (zero-padded) folders,
   ``(V, 3)`` float64 and ``reference.faces`` ``(F, 3)`` int64 (the mesh the features refer to, so
   features can be turned back into vertices without the training data), and ``novelty.latents``
   ``(N, L)`` float32 (the delivered model's latent means of the training frames: prediction's
-  novelty guard, ``meshseq.novelty``; runs stored before it lack it);
+  novelty guard, ``meshseq.novelty``; runs stored before it lack it) and ``novelty.steps`` alike
+  (each one's latent step from the training frame before it; runs stored before them lack them);
 * ``model.json``: format, iteration, model config, training config, feature scaling, mesh
-  topology hash, data set names and splits, the novelty reference's step and frame count, and the
+  topology hash, data set names and splits, the novelty reference's step, frame count and whether
+  it keeps the steps, and the
   SHA-256 of ``model.safetensors``;
 * ``state.safetensors``: Adam moments ``optim.<param name>.<key>``, the torch CPU generator state
   ``rng.torch`` (uint8) and, on CUDA, ``rng.cuda``; under DistributedDataParallel every other
@@ -249,8 +251,11 @@ def load_folder(folder: str | os.PathLike, with_state: bool = False, backend: st
                      backend)
     loaded = Loaded(folder, meta, net, reference, faces)
     if meta.get("novelty") is not None:
-        latents = np.ascontiguousarray(np.asarray(tensors[schema.NOVELTY_LATENTS]), dtype=np.float32)
-        loaded.novelty = NoveltyReference(latents, float(meta["novelty"]["step"]))
+        def array(key: str) -> np.ndarray | None:
+            return np.ascontiguousarray(np.asarray(tensors[key]), dtype=np.float32) if key in tensors else None
+
+        loaded.novelty = NoveltyReference(array(schema.NOVELTY_LATENTS), float(meta["novelty"]["step"]),
+                                          array(schema.NOVELTY_STEPS))
     if with_state:
         smeta = _read_json(folder / STATE_META)
         schema.check_state_meta(smeta, folder / STATE_META, meta["iteration"])

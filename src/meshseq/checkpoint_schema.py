@@ -31,6 +31,8 @@ FORMAT = "meshseq-bdlstm-checkpoint"
 FORMAT_VERSION = 1
 #: the training frames' latents (``meshseq.novelty``), with ``novelty`` in model.json; optional
 NOVELTY_LATENTS = "novelty.latents"
+#: each of those latents' step from the training frame before it, with ``novelty.steps`` true; optional
+NOVELTY_STEPS = "novelty.steps"
 
 
 class CheckpointError(MeshseqError):
@@ -146,7 +148,7 @@ def model_meta_schema() -> dict:
         "scaling": _SCALING, "topology": _TOPOLOGY, "datasets": [_DATASET],
         "features": Opt({"consistency": Opt(str), "reference": Opt(str), "placement": Opt(str)}),
         "validation": Opt({"error": float, "iteration": int}),
-        "novelty": Opt({"step": float, "frames": int}),
+        "novelty": Opt({"step": float, "frames": int, "steps": Opt(bool)}),
     }
 
 
@@ -349,7 +351,8 @@ def check_model_tensors(tensors: dict, meta: dict, file: Path) -> None:
     """CheckpointError unless model.safetensors holds ``model.<name>`` for every tensor of the model
     ``meta`` (model.json, checked) describes (``model_config.tensor_shapes``, float32), finite,
     besides the reference mesh (:func:`check_reference`) and, where model.json has ``novelty``,
-    ``novelty.latents`` ``(frames, latent)`` float32; nothing else."""
+    ``novelty.latents`` ``(frames, latent)`` float32 (and ``novelty.steps`` alike where ``novelty.steps``
+    is true); nothing else."""
     from meshseq.model_config import ModelConfig, tensor_shapes
 
     config = ModelConfig.from_dict(meta["model"], source=str(file))
@@ -357,6 +360,8 @@ def check_model_tensors(tensors: dict, meta: dict, file: Path) -> None:
     want.update({k: tensors[k] for k in ("reference.vertices", "reference.faces")})  # checked before
     if meta.get("novelty") is not None:
         want[NOVELTY_LATENTS] = TensorSpec((meta["novelty"]["frames"], config.latent), "float32")
+        if meta["novelty"].get("steps", False):
+            want[NOVELTY_STEPS] = want[NOVELTY_LATENTS]
     check_like(tensors, want, file, exact=True)
 
 

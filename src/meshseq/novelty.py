@@ -6,10 +6,17 @@ standing still (method.md, "Novelty guard"). The encoder's latent space tells th
 frames of a new performer doing a trained motion lie within a step or so of a training frame's
 latent, frames of an untrained motion several steps away.
 
-- ``NoveltyReference``: the latent means of the training frames and their typical step (the
-  median distance between the latents of consecutive training frames), stored with a checkpoint.
+A familiar pose can still start an untrained motion (bending forward from standing): the latent
+step between the last two given frames then points where no training frame near that pose went.
+
+- ``NoveltyReference``: the latent means of the training frames, each one's latent step from the
+  training frame before it, and their typical step (the median distance between the latents of
+  consecutive training frames), stored with a checkpoint.
 - ``novelty``: each frame's distance to the nearest training latent, in typical steps.
 - ``guard_weight``: 1 up to ``GUARD_START`` steps, 0 from ``GUARD_END``, linear between.
+- ``direction_familiarity``: how well the given frames' last latent step lines up with the steps of
+  the training frames nearest the last pose (the largest cosine); ``direction_weight``: 1 from
+  ``DIRECTION_END``, 0 up to ``DIRECTION_START``, linear between.
 - ``fallback``: what prediction falls back to: the last given frame held (one given frame), or
   its velocity continued and damped by ``FALLBACK_DECAY`` a frame (two or more).
 - ``guarded``: the roll-out blended towards the fallback by the weight.
@@ -28,6 +35,14 @@ import numpy as np
 GUARD_START = 2.0
 #: novelty from which prediction is the fallback alone
 GUARD_END = 4.0
+#: cosine from which a given step's direction counts as one training shows at that pose
+DIRECTION_END = 0.9
+#: cosine up to which it counts as a motion training never shows there (prediction: the fallback)
+DIRECTION_START = 0.7
+#: a latent step below this many typical steps is a pose held (float rounding, no direction)
+HELD = 1e-3
+#: training frames nearest the given pose whose steps the given step is compared with
+DIRECTION_NEIGHBOURS = 10
 #: a frame's share of the previous frame's velocity in the fallback of two or more given frames
 FALLBACK_DECAY = 0.9
 #: training frames kept in a reference (evenly spaced beyond it)
@@ -38,10 +53,13 @@ _ENCODE_BATCH = 32
 @dataclass(frozen=True)
 class NoveltyReference:
     """``latents`` ``(N, L)`` float32: latent means of training frames; ``step`` > 0: the median
-    latent distance between consecutive training frames."""
+    latent distance between consecutive training frames; ``steps`` ``(N, L)`` float32: each frame's
+    latent change from the training frame before it (a sequence's first frame: to the one after),
+    or None (a run stored before they were kept: no direction check)."""
 
     latents: np.ndarray
     step: float
+    steps: np.ndarray | None = None
 
 
 def reference_latents(encode: Callable[[np.ndarray], np.ndarray], sequences: list[np.ndarray],
@@ -53,24 +71,52 @@ def reference_latents(encode: Callable[[np.ndarray], np.ndarray], sequences: lis
         z = np.concatenate([np.asarray(encode(seq[i:i + _ENCODE_BATCH]), dtype=np.float32)
                             for i in range(0, len(seq), _ENCODE_BATCH)])
         latents.append(z)
-        steps.append(np.linalg.norm(np.diff(z, axis=0), axis=1))
-    all_steps = np.concatenate(steps)
-    if all_steps.size == 0:
+        d = np.diff(z, axis=0)
+        steps.append(np.concatenate([d[:1], d]) if len(d) else np.zeros_like(z))  # frame 0: to frame 1
+    sizes = np.concatenate([np.linalg.norm(d[1:], axis=1) for d in steps])
+    if sizes.size == 0:
         raise ValueError("a novelty reference needs a sequence of at least two frames")
-    z = np.concatenate(latents)
+    z, d = np.concatenate(latents), np.concatenate(steps)
+    step = float(np.median(sizes))
     if len(z) > max_frames:
-        z = z[np.linspace(0, len(z) - 1, max_frames).round().astype(np.int64)]
-    step = float(np.median(all_steps))
-    return NoveltyReference(np.ascontiguousarray(z), step if step > 0 else 1.0)
+        keep = np.linspace(0, len(z) - 1, max_frames).round().astype(np.int64)
+        z, d = z[keep], d[keep]
+    return NoveltyReference(np.ascontiguousarray(z), step if step > 0 else 1.0, np.ascontiguousarray(d))
 
 
 def novelty(latents: np.ndarray, reference: NoveltyReference) -> np.ndarray:
     """Distance of each latent ``(..., L)`` to the nearest reference latent, in typical steps ``(...)``."""
+    z = np.asarray(latents)
+    d2 = _nearest(z.reshape(-1, z.shape[-1]), reference)
+    return (np.sqrt(d2.min(axis=1)) / reference.step).reshape(z.shape[:-1])
+
+
+def _nearest(latents: np.ndarray, reference: NoveltyReference) -> np.ndarray:
+    """Squared distances ``(B, N)`` of latents ``(B, L)`` to every reference latent."""
     z = np.asarray(latents, dtype=np.float64)
-    flat = z.reshape(-1, z.shape[-1])
     ref = reference.latents.astype(np.float64)
-    d2 = (flat * flat).sum(1)[:, None] - 2.0 * flat @ ref.T + (ref * ref).sum(1)[None]
-    return (np.sqrt(np.maximum(d2.min(axis=1), 0.0)) / reference.step).reshape(z.shape[:-1])
+    return np.maximum((z * z).sum(1)[:, None] - 2.0 * z @ ref.T + (ref * ref).sum(1)[None], 0.0)
+
+
+def direction_familiarity(last: np.ndarray, previous: np.ndarray, reference: NoveltyReference,
+                          neighbours: int = DIRECTION_NEIGHBOURS) -> np.ndarray:
+    """The largest cosine ``(B,)`` between the step ``last - previous`` (latents ``(B, L)``) and the
+    steps of the ``neighbours`` reference frames nearest ``last`` (a reference frame without a step,
+    from a one-frame sequence, lines up with none); 1 where the given step is zero (a held pose goes
+    nowhere training did not; below ``HELD`` typical steps it is rounding, not a direction).
+    ``reference.steps`` must be present."""
+    step = np.asarray(last, dtype=np.float64) - np.asarray(previous, dtype=np.float64)
+    k = min(int(neighbours), len(reference.latents))
+    near = np.argpartition(_nearest(last, reference), k - 1, axis=1)[:, :k]  # (B, k)
+    theirs = reference.steps.astype(np.float64)[near]  # (B, k, L)
+    size = np.linalg.norm(step, axis=1)
+    cos = (theirs * step[:, None]).sum(-1) / np.maximum(np.linalg.norm(theirs, axis=-1) * size[:, None], 1e-30)
+    return np.where(size > HELD * reference.step, cos.max(axis=1), 1.0)
+
+
+def direction_weight(cos: np.ndarray, start: float = DIRECTION_START, end: float = DIRECTION_END) -> np.ndarray:
+    """The model's share of a prediction whose given step has ``direction_familiarity`` ``cos``."""
+    return np.clip((np.asarray(cos, dtype=np.float64) - start) / (end - start), 0.0, 1.0)
 
 
 def guard_weight(nov: np.ndarray, start: float = GUARD_START, end: float = GUARD_END) -> np.ndarray:

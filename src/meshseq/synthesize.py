@@ -164,14 +164,19 @@ def _warm_up(net, state, x: np.ndarray, sample: bool = False):
 
 def novelty_weights(model, given: np.ndarray) -> np.ndarray | None:
     """The model's share ``(B,)`` of predictions after given frames ``(B, U, V, C)``: the guard
-    weight of the most novel given frame (``meshseq.novelty``); None for a model without a
-    novelty reference."""
+    weight of the most novel given frame, and with U >= 2 at most the direction weight of the last
+    latent step (``meshseq.novelty``; a reference stored without training steps: the pose alone);
+    None for a model without a novelty reference."""
     reference = getattr(model, "novelty", None)
     if reference is None:
         return None
     bsz, u = given.shape[:2]
-    z = model.engine.encode(given.reshape((bsz * u,) + given.shape[2:]))
-    return novelty.guard_weight(novelty.novelty(z, reference).reshape(bsz, u).max(axis=1))
+    z = model.engine.encode(given.reshape((bsz * u,) + given.shape[2:])).reshape(bsz, u, -1)
+    weight = novelty.guard_weight(novelty.novelty(z, reference).max(axis=1))
+    if u > 1 and reference.steps is not None:
+        weight = np.minimum(weight, novelty.direction_weight(
+            novelty.direction_familiarity(z[:, -1], z[:, -2], reference)))
+    return weight
 
 
 # --------------------------------------------------------------------------------------------
@@ -319,7 +324,7 @@ def context_trust(model, before, key_a, after, key_b) -> np.ndarray:
     if getattr(model, "novelty", None) is None:
         return context_fit(model, before, key_a, after, key_b) < 1.0
     a, b = _frames(key_a), _frames(key_b)
-    familiar = novelty_weights(model, np.stack([a, b], axis=1)) >= 1.0  # the guard's weight of both keys
+    familiar = np.minimum(novelty_weights(model, a[:, None]), novelty_weights(model, b[:, None])) >= 1.0  # both keys' poses
     paces = []
     if before is not None and np.shape(before)[1]:
         paces.append(context_pace(model, np.concatenate([_frames(before), a[:, None]], 1)))

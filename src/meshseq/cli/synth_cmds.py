@@ -230,8 +230,9 @@ def cmd_predict(args) -> int:
         gen = synthesize.predict(model, feats, args.frames, pace=args.pace, guard=guard)
         weight = synthesize.novelty_weights(model, feats[None]) if guard else None
         if weight is not None and weight[0] < 1.0:
-            print(f"note: the given frames are unlike the training frames: the prediction is {weight[0]:.0%} the "
-                  "model's, the rest the given motion continued and slowing (--guard off: the model alone)")
+            print(f"note: the given frames (their poses, or where they head from there) are unlike the training "
+                  f"frames: the prediction is {weight[0]:.0%} the model's, the rest the given motion continued and "
+                  "slowing (--guard off: the model alone)")
     elif args.method == "vae_latent":
         all_feats = model.features(seq.vertices)
         lo, hi = _recorded_heldout(model, seq) or (args.start, args.start + args.given)

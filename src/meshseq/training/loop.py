@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from meshseq import checkpoint as ckpt
-from meshseq.checkpoint_schema import NOVELTY_LATENTS
+from meshseq.checkpoint_schema import NOVELTY_LATENTS, NOVELTY_STEPS
 from meshseq.data.windows import Split, WindowSampler, heldout_rows, split_frames
 from meshseq.errors import MeshseqError
 from meshseq.mesh import Topology, topology_hash
@@ -397,6 +397,7 @@ class _Saver:
         tensors["reference.faces"] = torch.from_numpy(np.asarray(data.faces, dtype=np.int64))
         novelty = novelty_reference(st, setup, self.dev)
         tensors[NOVELTY_LATENTS] = torch.from_numpy(novelty.latents)
+        tensors[NOVELTY_STEPS] = torch.from_numpy(novelty.steps)
         meta = {
             "model": setup.model_config.to_dict(),
             "train": setup.config.to_dict(),
@@ -407,7 +408,7 @@ class _Saver:
                          "placement": setup.config.placement},
             "torch_version": torch.__version__,
             "world_size": self.dist_info.world,
-            "novelty": {"step": novelty.step, "frames": int(len(novelty.latents))},
+            "novelty": {"step": novelty.step, "frames": int(len(novelty.latents)), "steps": True},
             **(extra or {}),
         }
         opt_t, opt_meta = ckpt.optimizer_state(st.optimizer, st.names)
