@@ -5,7 +5,8 @@
 
 For every sequence and 1 and 3 given frames (starts every ``--every`` frames over the whole
 sequence): the given frame's novelty (median [p10, p90]) and the error at h5 / h10 / h15 of the
-roll-out (``--guard off``) and of the guarded prediction, each over the best of zero velocity and
+roll-out (``--guard off``), of the guard's pose check alone and of the guarded prediction (pose
+and direction), each over the best of zero velocity and
 linear ACAP extrapolation; then the means (and maxima) over the sequences of each group (``--unseen``:
 motions the run never trained on). ``--train``: the run's training sequences, from which the
 reference is made for a run stored without one (the training segments recorded in the run).
@@ -15,11 +16,15 @@ on both sides) over the better linear interpolation: ours from the keys alone; t
 crossfade where both keys are familiar (the guard's weight, blended); ours warmed up on the 7
 frames around the keys, trusting the chains by ``context_fit`` (runs without the training latents)
 and by ``context_trust`` (the default).
+``--completion --trust-paces 0.5,0.6,0.8``: instead, ours warmed up and trusted by ``context_trust``
+with each of those slowest trusted paces (``synthesize.PACE_TRUST``), the same gaps; the means (and
+maxima) over the sequences of each group (the untrained motions, then each file's).
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 from pathlib import Path
 
@@ -62,13 +67,19 @@ def main() -> None:
     p.add_argument("--every", type=int, default=4)
     p.add_argument("--decays", default="", help="fallback dampings to score alone, comma-separated")
     p.add_argument("--completion", action="store_true", help="score completion joins instead")
+    p.add_argument("--trust-paces", default="", help="with --completion: score these PACE_TRUST values instead")
     args = p.parse_args()
     model = meshseq.load(args.run, backend="numpy")
     ensure_novelty(model, args.train.split(","), [Split.from_dict(d["split"]) for d in model.meta["datasets"]])
+    if args.completion and args.trust_paces:
+        trust_paces(model, args.specs, [float(t) for t in args.trust_paces.split(",")], args.unseen.split(","))
+        return
     if args.completion:
         completion(model, args.specs)
         return
     decays = [float(d) for d in args.decays.split(",") if d]
+    pose_only = copy.copy(model)  # the guard without its direction check
+    pose_only.novelty = novelty.NoveltyReference(model.novelty.latents, model.novelty.step)
     groups: dict[str, list] = {}
     for spec in args.specs:
         verts = load_sequence(spec).vertices.astype(np.float64)
@@ -82,19 +93,19 @@ def main() -> None:
             nov = novelty.novelty(model.engine.encode(given.reshape(-1, *given.shape[2:])),
                                   model.novelty).reshape(len(starts), u).max(1)
             off = errors(model, truth, predict(model, given, H, guard=False)) / best
+            pose = errors(pose_only, truth, predict(pose_only, given, H)) / best
             on = errors(model, truth, predict(model, given, H)) / best
             alone = [errors(model, truth, novelty.fallback(given, H, d)) / best for d in decays] if u > 1 else []
             unseen = any(spec.endswith("_" + m) for m in args.unseen.split(","))
-            groups.setdefault(f"{'untrained' if unseen else 'trained'} motions, u{u}", []).append((off, on, *alone))
+            groups.setdefault(f"{'untrained' if unseen else 'trained'} motions, u{u}", []).append((off, pose, on, *alone))
             print(f"{spec.split(':')[-1]:28s} u{u} novelty {np.median(nov):4.1f} [{np.percentile(nov, 10):.1f}, "
-                  f"{np.percentile(nov, 90):.1f}]  off {fmt(off)}  guarded {fmt(on)}"
+                  f"{np.percentile(nov, 90):.1f}]  off {fmt(off)}  pose alone {fmt(pose)}  guarded {fmt(on)}"
                   + "".join(f"  fallback {d} {fmt(a)}" for d, a in zip(decays, alone)), flush=True)
     for name, rows in sorted(groups.items()):
         a = np.array(rows)
-        print(f"{name}: off {fmt(a[:, 0].mean(0))} (max {fmt(a[:, 0].max(0))})  guarded {fmt(a[:, 1].mean(0))} "
-              f"(max {fmt(a[:, 1].max(0))})"
-              + "".join(f"  fallback {d} {fmt(a[:, 2 + i].mean(0))} (max {fmt(a[:, 2 + i].max(0))})"
-                        for i, d in enumerate(decays) if a.shape[1] > 2 + i))
+        print(f"{name}: " + "  ".join(f"{what} {fmt(a[:, i].mean(0))} (max {fmt(a[:, i].max(0))})" for i, what in
+                                      enumerate(["off", "pose alone", "guarded"] + [f"fallback {d}" for d in decays])
+                                      if a.shape[1] > i))
 
 
 def completion(model, specs: list[str]) -> None:
@@ -102,7 +113,6 @@ def completion(model, specs: list[str]) -> None:
     where the keys are familiar (keys alone), and warmed up on 7 frames around the keys trusting
     the chains by ``context_fit`` (a run without the training latents) or by ``context_trust`` (the
     default); 12 gaps per length, each with 7 frames on both sides."""
-    import copy
 
     from meshseq import baselines, novelty
     from meshseq.align import per_vertex_error
@@ -144,6 +154,52 @@ def completion(model, specs: list[str]) -> None:
             cells.append(f"gap {gap}: keys {ours(model, 0):.2f} familiar-corrected {error(blended) / lines:.2f} "
                          f"context/fit {ours(without, CONTEXT):.2f} context/trust {ours(model, CONTEXT):.2f}")
         print(f"{spec.split(':')[-1]:28s} " + " | ".join(cells), flush=True)
+
+
+def trust_paces(model, specs: list[str], paces: list[float], unseen: list[str]) -> None:
+    """Ours over the better interpolation at gaps 5 / 10 / 20 / 30 (12 gaps each, ``CONTEXT`` frames
+    on both sides) with ``context_trust`` at each slowest trusted pace: the chains and both joins
+    are made once, each pace picks per gap the corrected join (trusted) or the anchored one."""
+    from meshseq import baselines, novelty
+    from meshseq.align import per_vertex_error
+    from meshseq.evaluate import context_chains
+    from meshseq.io import load_sequence
+    from meshseq.synthesize import CONTEXT, assemble_vertices, context_pace, join_chains
+
+    groups: dict[str, list] = {}
+    for spec in specs:
+        verts = load_sequence(spec).vertices.astype(np.float64)
+        feats = model.features(verts).astype(np.float32)
+        nov = novelty.novelty(model.engine.encode(feats), model.novelty)
+        rows = []
+        for gap in (5, 10, 20, 30):
+            starts = np.arange(CONTEXT, len(verts) - CONTEXT - gap - 1)
+            starts = starts[np.linspace(0, len(starts) - 1, min(12, len(starts))).astype(int)]
+            fw, bw, _ = context_chains(model, feats, starts, gap, CONTEXT)
+            ends = starts + gap + 1
+            pace = np.minimum(context_pace(model, np.stack([feats[a - CONTEXT:a + 1] for a in starts])),
+                              context_pace(model, np.stack([feats[b:b + CONTEXT + 1] for b in ends])))
+            familiar = np.maximum(nov[starts], nov[ends]) <= novelty.GUARD_START  # the guard's weight is 1
+
+            def error(f: np.ndarray) -> np.ndarray:
+                return np.array([per_vertex_error(assemble_vertices(model, f[p], {0: verts[a], gap + 1: verts[b]})[1:-1],
+                                                  verts[a + 1:b]).mean() for p, (a, b) in enumerate(zip(starts, ends))])
+
+            anchored, corrected = (error(join_chains(fw, bw, j)[0]) for j in ("anchored", "corrected"))
+            lines = min(error(np.stack([baselines.linear_interpolation(feats[a], feats[b], gap)
+                                        for a, b in zip(starts, ends)])).mean(),
+                        float(np.mean([per_vertex_error(baselines.linear_interpolation(verts[a], verts[b], gap)[1:-1],
+                                                        verts[a + 1:b]).mean() for a, b in zip(starts, ends)])))
+            rows.append([np.where(familiar & (pace >= t), corrected, anchored).mean() / lines for t in paces])
+        rows = np.array(rows).T  # (paces, gaps)
+        name = spec.split(":")[-1]
+        group = "untrained motions" if any(name.endswith("_" + m) for m in unseen) else Path(spec.split(":")[0]).name
+        groups.setdefault(group, []).append(rows)
+        print(f"{name:28s} " + " | ".join(f"pace {t}: {fmt(r)}" for t, r in zip(paces, rows)), flush=True)
+    for group, rows in sorted(groups.items()):
+        a = np.array(rows)  # (sequences, paces, gaps)
+        for i, t in enumerate(paces):
+            print(f"{group} ({len(a)}), pace {t}: {fmt(a[:, i].mean(0))} (max {fmt(a[:, i].max(0))})")
 
 
 def fmt(x: np.ndarray) -> str:

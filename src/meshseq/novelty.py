@@ -42,7 +42,7 @@ DIRECTION_START = 0.7
 #: a latent step below this many typical steps is a pose held (float rounding, no direction)
 HELD = 1e-3
 #: training frames nearest the given pose whose steps the given step is compared with
-DIRECTION_NEIGHBOURS = 10
+DIRECTION_NEIGHBOURS = 20
 #: a frame's share of the previous frame's velocity in the fallback of two or more given frames
 FALLBACK_DECAY = 0.9
 #: training frames kept in a reference (evenly spaced beyond it)

@@ -300,7 +300,7 @@ def _side_fit(path: np.ndarray, rolled: np.ndarray) -> np.ndarray:
 
 
 #: the slowest pace (``pace_factor`` of the frames around the keys) at which the chains are trusted
-PACE_TRUST = 0.8
+PACE_TRUST = 0.6
 #: frames on each side of the keys that ``meshseq complete`` gives the chains (``--context``)
 CONTEXT = 7
 
