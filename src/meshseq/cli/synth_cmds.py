@@ -42,9 +42,10 @@ def register(sub) -> None:
                    "where they move slower than the model expects (a pose held still stays still); "
                    "model: the roll-out as trained")
     p.add_argument("--guard", choices=GUARDS, default=GUARDS[0],
-                   help="novelty (default): where the given frames are unlike every training frame, blend "
-                   "the roll-out towards the given motion continued and slowing (the model's own motion "
-                   "there is a guess); off: the roll-out alone (the paper's)")
+                   help="novelty (default): where the given frames are unlike every training frame, or head "
+                   "where no training frame near them went, blend the roll-out towards the given motion "
+                   "continued and slowing (the model's own motion there is a guess); off: the roll-out "
+                   "alone (the paper's)")
     _output(p)
     p.set_defaults(func=cmd_predict)
 
