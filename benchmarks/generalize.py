@@ -291,7 +291,9 @@ def table(files: list[str]) -> str:
             pred = [ratio_cell(prediction_ratio(b, *cell)) for cell in cells]
             comp = [f"{completion_ratio(b, g):.2f}" if g in b["completion"] else "-" for g in ("5", "10", "20", "30")]
             block = "unseen sequence" if rec["train"]["holdout"] == 0 else f"@ {rec['holdout_at']}"
-            rows.append(f"| {rec['set']} {block}, {rec['iteration']} it | {Path(b['sequence']).name} | "
+            seed = rec["train"].get("seed", 0)
+            rows.append(f"| {rec['set']} {block}, {rec['iteration']} it{f', seed {seed}' if seed else ''} | "
+                        f"{Path(b['sequence']).name} | "
                         f"{b['novelty']:.1f} | "
                         f"{b['motion_level']:.2f} | {' | '.join(pred)} | {' | '.join(comp)} | {b['motion_50']:.2f} |")
     return "\n".join(rows)
