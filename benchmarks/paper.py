@@ -380,7 +380,7 @@ def generalization_section(files: list[Path]) -> list[str]:
     spec.loader.exec_module(generalize)
     return ["## Generalisation: the default recipe on every capture, no per-set options", "",
             "Made by `benchmarks/generalize.py` (records in `docs/results/generalize/`): each set trained with "
-            "every default for the iterations (and seed, 0 unless the row says) its row says, then scored on blocks it never saw: the held-out end "
+            "every default (seed 0 unless its row names another) for the iterations its row says, then scored on blocks it never saw: the held-out end "
             "of each capture, and for the body set the sequences of one subject (male_slim) and one motion "
             "(shake_arms) held out entirely; bodies-parts is the same set made with `make-bodies --parts eyes,strap` "
             "(two eyes and a bag strap as separate parts, 1,612 vertices). Novelty: the block's median distance to the nearest training frame "
