@@ -105,8 +105,9 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
             ``centroid``), not for one that measures them from their anchors (their first step
             does not jump: method.md, "Meshes of several parts").
         guard: blend the roll-out towards ``novelty.fallback`` where the given frames are unlike
-            the training frames (``novelty_weights``); no effect for a model stored without a
-            novelty reference. False: the roll-out as it is (the paper's).
+            the training frames or, with U >= 2, head where no training frame near them went
+            (``novelty_weights``); no effect for a model stored without a novelty reference.
+            False: the roll-out as it is (the paper's).
     Returns:
         ``(n_frames, V, 9)`` (or ``(B, n_frames, V, 9)``) generated scaled features.
     """
