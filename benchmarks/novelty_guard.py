@@ -10,7 +10,8 @@ and direction), each over the best of zero velocity and
 linear ACAP extrapolation; then the means (and maxima) over the sequences of each group (``--unseen``:
 motions the run never trained on). ``--train``: the run's training sequences, from which the
 reference is made for a run stored without one (the training segments recorded in the run).
-``--decays``: also the fallback alone with each velocity damping (3 given frames).
+``--decays``: also the fallback alone with each fixed velocity damping and with its default (the
+given frames' own slowing, ``novelty.own_decay``), 3 given frames.
 ``--completion``: instead, completion (12 gaps of 5, 10, 20 and 30 frames per sequence, 7 frames
 on both sides) over the better linear interpolation: ours from the keys alone; the corrected
 crossfade where both keys are familiar (the guard's weight, blended); ours warmed up on the 7
@@ -95,16 +96,20 @@ def main() -> None:
             off = errors(model, truth, predict(model, given, H, guard=False)) / best
             pose = errors(pose_only, truth, predict(pose_only, given, H)) / best
             on = errors(model, truth, predict(model, given, H)) / best
-            alone = [errors(model, truth, novelty.fallback(given, H, d)) / best for d in decays] if u > 1 else []
+            alone = [errors(model, truth, novelty.fallback(given, H, d, own_pace=False)) / best for d in decays]
+            if decays:
+                alone.append(errors(model, truth, novelty.fallback(given, H)) / best)
+            alone = alone if u > 1 else []
             unseen = any(spec.endswith("_" + m) for m in args.unseen.split(","))
             groups.setdefault(f"{'untrained' if unseen else 'trained'} motions, u{u}", []).append((off, pose, on, *alone))
             print(f"{spec.split(':')[-1]:28s} u{u} novelty {np.median(nov):4.1f} [{np.percentile(nov, 10):.1f}, "
                   f"{np.percentile(nov, 90):.1f}]  off {fmt(off)}  pose alone {fmt(pose)}  guarded {fmt(on)}"
-                  + "".join(f"  fallback {d} {fmt(a)}" for d, a in zip(decays, alone)), flush=True)
+                  + "".join(f"  fallback {d} {fmt(a)}" for d, a in zip(decays + ["own pace"], alone)), flush=True)
     for name, rows in sorted(groups.items()):
         a = np.array(rows)
         print(f"{name}: " + "  ".join(f"{what} {fmt(a[:, i].mean(0))} (max {fmt(a[:, i].max(0))})" for i, what in
-                                      enumerate(["off", "pose alone", "guarded"] + [f"fallback {d}" for d in decays])
+                                      enumerate(["off", "pose alone", "guarded"] + [f"fallback {d}" for d in decays]
+                                                + ["fallback own pace"])
                                       if a.shape[1] > i))
 
 

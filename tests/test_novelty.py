@@ -54,7 +54,7 @@ def test_fallback_holds_one_frame_and_damps_the_velocity_of_two():
     rng = np.random.default_rng(0)
     one = rng.normal(size=(2, 1, 4, 9)).astype(np.float32)
     assert np.array_equal(novelty.fallback(one, 3), np.repeat(one, 3, axis=1))
-    two = rng.normal(size=(2, 3, 4, 9))
+    two = rng.normal(size=(2, 2, 4, 9))
     out = novelty.fallback(two, 30)
     v = two[:, -1] - two[:, -2]
     assert np.allclose(out[:, 0], two[:, -1] + v)  # the first frame keeps the last velocity
@@ -75,3 +75,24 @@ def test_guarded_leaves_familiar_frames_alone_and_replaces_novel_ones():
     base = novelty.fallback(given, 5)
     assert np.array_equal(out[0], frames[0]) and np.allclose(out[1], base[1])
     assert np.allclose(out[2], 0.5 * (frames[2] + base[2]), atol=1e-6)
+
+
+def test_fallback_of_three_or_more_follows_the_given_frames_own_slowing():
+    """Steps of the given frames halving: the fallback keeps halving them; speeding up: damped by
+    FALLBACK_DECAY at most; turned back: one step, then held; own_pace=False: FALLBACK_DECAY."""
+    rng = np.random.default_rng(2)
+    base, v = rng.normal(size=(4, 9)), rng.normal(size=(4, 9))
+    slowing = np.stack([base, base + v, base + 1.5 * v])  # steps v, v / 2
+    faster = np.stack([base, base + v, base + 3 * v])  # steps v, 2 v
+    turned = np.stack([base, base + v, base + 0.5 * v])  # steps v, -v / 2
+    given = np.stack([slowing, faster, turned])  # (3, 3, 4, 9)
+    assert np.allclose(novelty.own_decay(given), [0.5, novelty.FALLBACK_DECAY, 0.0])
+    assert np.allclose(novelty.own_decay(given[:, 1:]), novelty.FALLBACK_DECAY)  # two frames: no ratio
+    out = novelty.fallback(given, 6)
+    steps = np.diff(np.concatenate([given[:, -1:], out], axis=1), axis=1)
+    assert np.allclose(steps[0, 1:], 0.5 * steps[0, :-1]) and np.allclose(steps[0, 0], 0.5 * v)
+    assert np.allclose(steps[1, 1:], novelty.FALLBACK_DECAY * steps[1, :-1])
+    assert np.allclose(steps[2, 0], -0.5 * v) and np.allclose(steps[2, 1:], 0.0)
+    fixed = novelty.fallback(given, 6, own_pace=False)
+    fixed_steps = np.diff(np.concatenate([given[:, -1:], fixed], axis=1), axis=1)
+    assert np.allclose(fixed_steps[:, 1:], novelty.FALLBACK_DECAY * fixed_steps[:, :-1])

@@ -18,7 +18,8 @@ step between the last two given frames then points where no training frame near 
   the training frames nearest the last pose (the largest cosine); ``direction_weight``: 1 from
   ``DIRECTION_END``, 0 up to ``DIRECTION_START``, linear between.
 - ``fallback``: what prediction falls back to: the last given frame held (one given frame), or
-  its velocity continued and damped by ``FALLBACK_DECAY`` a frame (two or more).
+  its velocity continued and damped by ``FALLBACK_DECAY`` a frame (two), by the given frames' own
+  slowing where they slow faster, stopped where they turned back (three or more: ``own_decay``).
 - ``guarded``: the roll-out blended towards the fallback by the weight.
 
 Arrays in, arrays out; nothing here loads, trains or prints.
@@ -124,17 +125,36 @@ def guard_weight(nov: np.ndarray, start: float = GUARD_START, end: float = GUARD
     return np.clip((end - np.asarray(nov, dtype=np.float64)) / (end - start), 0.0, 1.0)
 
 
-def fallback(given: np.ndarray, n_frames: int, decay: float = FALLBACK_DECAY) -> np.ndarray:
+def own_decay(given: np.ndarray, decay: float = FALLBACK_DECAY) -> np.ndarray:
+    """The damping ``(B,)`` of the fallback after given ``(B, U, V, C)``, U >= 2: ``decay``, and
+    with U >= 3 at most the given frames' own ratio of their last step's size to the one before
+    (a slowing motion keeps slowing at its rate), 0 where those two steps point apart (cosine
+    below 0: the motion has turned back)."""
+    x = np.asarray(given, dtype=np.float64)
+    d = np.full(len(x), float(decay))
+    if x.shape[1] < 3:
+        return d
+    last = (x[:, -1] - x[:, -2]).reshape(len(x), -1)
+    before = (x[:, -2] - x[:, -3]).reshape(len(x), -1)
+    size_last, size_before = np.linalg.norm(last, axis=1), np.linalg.norm(before, axis=1)
+    d = np.minimum(d, size_last / np.maximum(size_before, 1e-30))
+    return np.where((last * before).sum(1) < 0.0, 0.0, d)
+
+
+def fallback(given: np.ndarray, n_frames: int, decay: float = FALLBACK_DECAY, own_pace: bool = True) -> np.ndarray:
     """``(B, n, V, C)`` frames after given ``(B, U, V, C)``: the last held (U = 1), else its
-    velocity continued with a share ``decay`` of it kept each frame."""
+    velocity continued with a share of it kept each frame: ``decay``, or with ``own_pace`` the
+    given frames' own (``own_decay``)."""
     x = np.asarray(given)
     last = x[:, -1:]
     if x.shape[1] < 2:
         return np.repeat(last, int(n_frames), axis=1)
+    d = own_decay(x, decay) if own_pace else np.full(len(x), float(decay))
     k = np.arange(1, int(n_frames) + 1, dtype=np.float64)
-    reach = k if decay == 1.0 else (1.0 - decay ** k) / (1.0 - decay)  # the velocity's summed share
-    velocity = x[:, -1:] - x[:, -2:-1]
-    return last + reach.astype(x.dtype)[None, :, None, None] * velocity
+    power = d[:, None] ** k[None]
+    reach = np.where(d[:, None] == 1.0, k[None], (1.0 - power) / np.where(d[:, None] == 1.0, 1.0, 1.0 - d[:, None]))
+    velocity = x[:, -1:] - x[:, -2:-1]  # reach: the velocity's summed share, (B, n)
+    return last + reach.astype(x.dtype)[:, :, None, None] * velocity
 
 
 def guarded(frames: np.ndarray, given: np.ndarray, weight: np.ndarray) -> np.ndarray:
