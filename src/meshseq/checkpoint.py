@@ -11,8 +11,7 @@ A run folder ``RUN`` holds ``RUN/checkpoints/ITERATION/`` (zero-padded) folders,
   (each one's latent step from the training frame before it; runs stored before them lack them);
 * ``model.json``: format, iteration, model config, training config, feature scaling, mesh
   topology hash, data set names and splits, the novelty reference's step, frame count and whether
-  it keeps the steps, and the
-  SHA-256 of ``model.safetensors``;
+  it keeps the steps, and the SHA-256 of ``model.safetensors``;
 * ``state.safetensors``: Adam moments ``optim.<param name>.<key>``, the torch CPU generator state
   ``rng.torch`` (uint8) and, on CUDA, ``rng.cuda``; under DistributedDataParallel every other
   process's as ``rng.torch.rank<R>`` / ``rng.cuda.rank<R>`` (each rank draws its own noise);
