@@ -150,11 +150,8 @@ def fallback(given: np.ndarray, n_frames: int, decay: float = FALLBACK_DECAY, ow
     if x.shape[1] < 2:
         return np.repeat(last, int(n_frames), axis=1)
     d = own_decay(x, decay) if own_pace else np.full(len(x), float(decay))
-    k = np.arange(1, int(n_frames) + 1, dtype=np.float64)
-    power = d[:, None] ** k[None]
-    reach = np.where(d[:, None] == 1.0, k[None], (1.0 - power) / np.where(d[:, None] == 1.0, 1.0, 1.0 - d[:, None]))
-    velocity = x[:, -1:] - x[:, -2:-1]  # reach: the velocity's summed share, (B, n)
-    return last + reach.astype(x.dtype)[:, :, None, None] * velocity
+    reach = np.cumsum(d[:, None] ** np.arange(int(n_frames))[None], axis=1)  # the velocity's summed share (B, n)
+    return last + reach.astype(x.dtype)[:, :, None, None] * (x[:, -1:] - x[:, -2:-1])
 
 
 def guarded(frames: np.ndarray, given: np.ndarray, weight: np.ndarray) -> np.ndarray:
