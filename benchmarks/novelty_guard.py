@@ -164,27 +164,25 @@ def completion(model, specs: list[str]) -> None:
 def trust_paces(model, specs: list[str], paces: list[float], unseen: list[str]) -> None:
     """Ours over the better interpolation at gaps 5 / 10 / 20 / 30 (12 gaps each, ``CONTEXT`` frames
     on both sides) with ``context_trust`` at each slowest trusted pace: the chains and both joins
-    are made once, each pace picks per gap the corrected join (trusted) or the anchored one."""
-    from meshseq import baselines, novelty
+    are made once, each pace's trust picks per gap the corrected join or the anchored one."""
+    from meshseq import baselines
     from meshseq.align import per_vertex_error
     from meshseq.evaluate import context_chains
     from meshseq.io import load_sequence
-    from meshseq.synthesize import CONTEXT, assemble_vertices, context_pace, join_chains
+    from meshseq.synthesize import CONTEXT, assemble_vertices, context_trust, join_chains
 
     groups: dict[str, list] = {}
     for spec in specs:
         verts = load_sequence(spec).vertices.astype(np.float64)
         feats = model.features(verts).astype(np.float32)
-        nov = novelty.novelty(model.engine.encode(feats), model.novelty)
         rows = []
         for gap in (5, 10, 20, 30):
             starts = np.arange(CONTEXT, len(verts) - CONTEXT - gap - 1)
             starts = starts[np.linspace(0, len(starts) - 1, min(12, len(starts))).astype(int)]
             fw, bw, _ = context_chains(model, feats, starts, gap, CONTEXT)
             ends = starts + gap + 1
-            pace = np.minimum(context_pace(model, np.stack([feats[a - CONTEXT:a + 1] for a in starts])),
-                              context_pace(model, np.stack([feats[b:b + CONTEXT + 1] for b in ends])))
-            familiar = np.maximum(nov[starts], nov[ends]) <= novelty.GUARD_START  # the guard's weight is 1
+            around = (np.stack([feats[a - CONTEXT:a] for a in starts]), feats[starts],
+                      np.stack([feats[b + 1:b + CONTEXT + 1] for b in ends]), feats[ends])
 
             def error(f: np.ndarray) -> np.ndarray:
                 return np.array([per_vertex_error(assemble_vertices(model, f[p], {0: verts[a], gap + 1: verts[b]})[1:-1],
@@ -195,7 +193,8 @@ def trust_paces(model, specs: list[str], paces: list[float], unseen: list[str]) 
                                         for a, b in zip(starts, ends)])).mean(),
                         float(np.mean([per_vertex_error(baselines.linear_interpolation(verts[a], verts[b], gap)[1:-1],
                                                         verts[a + 1:b]).mean() for a, b in zip(starts, ends)])))
-            rows.append([np.where(familiar & (pace >= t), corrected, anchored).mean() / lines for t in paces])
+            rows.append([np.where(context_trust(model, *around, pace_trust=t), corrected, anchored).mean() / lines
+                         for t in paces])
         rows = np.array(rows).T  # (paces, gaps)
         name = spec.split(":")[-1]
         group = "untrained motions" if any(name.endswith("_" + m) for m in unseen) else Path(spec.split(":")[0]).name

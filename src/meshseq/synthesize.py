@@ -315,11 +315,11 @@ def context_pace(model, path: np.ndarray) -> np.ndarray:
     return pace_factor(_rms(x[:, 1:] - x[:, :-1]), expected)
 
 
-def context_trust(model, before, key_a, after, key_b) -> np.ndarray:
+def context_trust(model, before, key_a, after, key_b, pace_trust: float = PACE_TRUST) -> np.ndarray:
     """``(P,)`` bool: whether the chains between P pairs of keys may keep their own motion (the
     corrected join): both keys familiar (``meshseq.novelty``: the guard's weight is 1) and the frames
     given around them (``before`` ``(P, U_a, V, C)`` up to ``key_a``, ``key_b`` then ``after``
-    ``(P, U_b, V, C)``) moving at the model's pace (``context_pace`` >= ``PACE_TRUST`` on each side
+    ``(P, U_b, V, C)``) moving at the model's pace (``context_pace`` >= ``pace_trust`` on each side
     with frames; False where neither side has any). A model stored without the training frames'
     latents: ``context_fit`` < 1 instead."""
     if getattr(model, "novelty", None) is None:
@@ -333,7 +333,7 @@ def context_trust(model, before, key_a, after, key_b) -> np.ndarray:
         paces.append(context_pace(model, np.concatenate([b[:, None], _frames(after)], 1)))
     if not paces:
         return np.zeros(len(a), bool)
-    return familiar & (np.min(paces, axis=0) >= PACE_TRUST)
+    return familiar & (np.min(paces, axis=0) >= pace_trust)
 
 
 def run_context_chains(model, keys_a, keys_b, n_between: int, state, before=None, after=None,
