@@ -439,6 +439,40 @@ def test_predict_command_guards_against_frames_unlike_the_training_ones(model, t
     assert not np.allclose(outs["novelty"], outs["off"], atol=1e-4)
 
 
+def test_evaluate_guard_off_changes_ours_prediction_and_nothing_else(model, trained, tmp_path, capsys):
+    """evaluate --guard off scores ours' unguarded roll-out (the limb stretched to twice its width,
+    where the guard acts), and its completion is the default one, the keys' trust still measured
+    against the training frames' latents (on the limb itself, where that trust differs from the
+    rule for runs stored without them)."""
+    from meshseq import evaluate
+    from meshseq.synthesize import CONTEXT
+
+    run, data, seq = trained
+    wide = tmp_path / "wide.npz"
+    save_sequence(MeshSequence(seq.vertices * np.array([2.0, 1.0, 1.0]), seq.faces, name="wide"), wide)
+
+    def scored(path, guard: str, gaps: str) -> dict:
+        out = tmp_path / f"{path.stem}_{guard}.json"
+        assert main(["evaluate", str(run), str(path), "--range", "20:60", "--methods", "ours", "--given", "3",
+                     "--horizons", "4", "--gaps", gaps, "--curve-frames", "4", "--guard", guard,
+                     "--json", str(out)]) == 0
+        return json.loads(out.read_text())
+
+    verts = load_sequence(wide).vertices
+    feats = model.features(verts)
+    predicted = {}
+    for guard in ("novelty", "off"):
+        predicted[guard] = scored(wide, guard, "none")["errors"]["ours"]["u3"]["4"]
+        expect = evaluate.prediction_errors(model, verts, feats, 20, 60, 3, [4], ["ours"], guard=guard == "novelty")
+        assert predicted[guard] == pytest.approx(expect["ours"]["centroid"]["4"], rel=1e-9)
+    assert predicted["off"] != predicted["novelty"]
+    feats = model.features(seq.vertices)
+    expect = evaluate.completion_errors(model, seq.vertices, feats, 20, 60, [6], ["ours"], context=CONTEXT)
+    for guard in ("novelty", "off"):
+        assert scored(data, guard, "6")["completion"]["6"]["ours"] == pytest.approx(expect["6"]["ours"], rel=1e-9)
+    capsys.readouterr()
+
+
 def test_predict_and_complete_commands(trained, tmp_path, capsys):
     run, data, seq = trained
     out = tmp_path / "pred.npz"

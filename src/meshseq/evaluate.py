@@ -35,17 +35,19 @@ def prediction_starts(lo: int, hi: int, given: int, horizon: int, every: int = 1
 
 
 def predicted_features(method: str, model, feats: np.ndarray, starts: np.ndarray, given: int,
-                       n_frames: int, vae=None, sample: bool = False) -> np.ndarray:
+                       n_frames: int, vae=None, sample: bool = False, guard: bool = True) -> np.ndarray:
     """Scaled features ``(B, n, V, 9)`` predicted by ``method`` after ``feats[s:s+given]``
-    (``sample``: ours draws the VAE latent instead of taking its mean)."""
-    return method_prediction(method, model, np.stack([feats[s:s + given] for s in starts]), n_frames, vae, sample)
+    (``sample``: ours draws the VAE latent instead of taking its mean; ``guard``: ours with the
+    novelty guard, ``synthesize.predict``'s)."""
+    return method_prediction(method, model, np.stack([feats[s:s + given] for s in starts]), n_frames, vae, sample,
+                             guard)
 
 
 def method_prediction(method: str, model, windows: np.ndarray, n_frames: int, vae=None,
-                      sample: bool = False) -> np.ndarray:
+                      sample: bool = False, guard: bool = True) -> np.ndarray:
     """Scaled features ``(B, n, V, 9)`` predicted by ``method`` after given frames ``(B, U, V, 9)``."""
     if method == "ours":
-        return predict(model, windows, n_frames, sample=sample)
+        return predict(model, windows, n_frames, sample=sample, guard=guard)
     if method == "zero_velocity":
         return baselines.zero_velocity(windows, n_frames)
     if method == "linear_acap":
@@ -59,12 +61,13 @@ def method_prediction(method: str, model, windows: np.ndarray, n_frames: int, va
 
 def prediction_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, hi: int,
                       given: int, horizons: list[int], methods: list[str], vae=None,
-                      every: int = 1) -> dict:
+                      every: int = 1, guard: bool = True) -> dict:
     """Errors per method in units of 1e-4, averaged over every start in ``[lo, hi)``.
 
     ``vertices`` ``(T, V, 3)`` true positions and ``feats`` ``(T, V, 9)`` their scaled features;
     the held-out range is ``[lo, hi)``. Zero velocity is measured in vertex space (the last given
     frame's true vertices: no reconstruction error); the others are reconstructed from features.
+    ``guard``: ours with the novelty guard (``synthesize.predict``'s).
 
     Returns ``{method: {"centroid": {str(h): e}, "rigid": {str(h): e}, "curve": [e_1..e_H],
     "starts": n}}`` (``curve``: centroid-aligned error at every horizon 1..max(horizons)).
@@ -82,7 +85,7 @@ def prediction_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
         if method == "zero_velocity":
             pred = np.repeat(np.stack([vertices[s + given - 1] for s in starts])[:, None], h_max, 1)
         else:
-            f = predicted_features(method, model, feats, starts, given, h_max, vae)  # (B, H, V, 9)
+            f = predicted_features(method, model, feats, starts, given, h_max, vae, guard=guard)  # (B, H, V, 9)
             pred = model.vertices(f.reshape(-1, *f.shape[2:])).reshape(truth.shape)
         flat = pred.reshape(flat_truth.shape)
         res = {"starts": int(len(starts))}
@@ -142,11 +145,12 @@ CURVE_STARTS = 8
 
 
 def feature_change(model, feats: np.ndarray, starts: np.ndarray, given: int, n_frames: int,
-                   methods: list[str], vae=None, sample: bool = False) -> dict:
+                   methods: list[str], vae=None, sample: bool = False, guard: bool = True) -> dict:
     """Mean feature-change curve (length ``n_frames``) per method, plus ``ground_truth``'s mean level.
 
     The curve starts at the step from the last given frame to the first generated one.
-    ``sample``: ours draws the VAE latent (default: its mean, as meshseq predicts).
+    ``sample``: ours draws the VAE latent (default: its mean, as meshseq predicts); ``guard``: ours
+    with the novelty guard.
     """
     out = {}
     for method in methods:
@@ -154,7 +158,7 @@ def feature_change(model, feats: np.ndarray, starts: np.ndarray, given: int, n_f
         for i in range(0, len(starts), CURVE_STARTS):  # a few starts at a time: (B, n, V, C) float64 is large
             part = starts[i:i + CURVE_STARTS]
             windows_last = np.stack([feats[s + given - 1] for s in part])[:, None]
-            f = predicted_features(method, model, feats, part, given, n_frames, vae, sample)
+            f = predicted_features(method, model, feats, part, given, n_frames, vae, sample, guard)
             raw = model.scaling.invert(np.concatenate([windows_last, f], axis=1))
             total += relative_change(raw) * len(part)
         out[method] = (total / len(starts)).tolist()

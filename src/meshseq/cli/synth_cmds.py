@@ -98,7 +98,8 @@ def register(sub) -> None:
     p.add_argument("--cma-evals", type=int, default=200, help="CMA-ES roll-outs per gap (default 200)")
     p.add_argument("--cma-seconds", type=float, default=30.0, help="CMA-ES seconds per gap (default 30)")
     p.add_argument("--guard", choices=GUARDS, default=GUARDS[0],
-                   help="ours' prediction as predict makes it: novelty (default) or off (the roll-out alone)")
+                   help="ours' prediction as predict makes it: novelty (default) or off (the roll-out alone); "
+                   "completion is the same either way")
     p.add_argument("--json", dest="json_out", default=None, metavar="OUT.json", help="write the results as JSON")
     p.add_argument("--plots", default=None, metavar="DIR", help="write error and feature-change plots (PNG) here")
     p.add_argument("--force", action="store_true", help="overwrite outputs")
@@ -337,8 +338,7 @@ def cmd_evaluate(args) -> int:
             raise MeshseqError(f"--methods: unknown method {m!r}; expected some of {', '.join(baselines.PREDICTION_METHODS)}")
     gaps = [] if args.gaps.strip().lower() == "none" else _int_list(args.gaps, "--gaps")
     model, seq = _load(args)
-    if args.guard == "off":
-        model.novelty = None  # (the guard acts only with the training frames' latents)
+    guard = args.guard == "novelty"
     lo, hi = _heldout(model, seq, args.range)
     feats = model.features(seq.vertices)
     vae = _vae(model, args.run, seq, feats, (lo, hi), args.vae_iterations) if "vae_latent" in methods else None
@@ -354,13 +354,14 @@ def cmd_evaluate(args) -> int:
         result["notes"].append(f"the run was trained with stride {stride}: one predicted step = {stride} frames")
     if vae is not None:
         result["notes"].append(baselines.VAE_NOTE)
-    if args.guard == "off":
-        result["notes"].append("ours without the novelty guard (--guard off: the roll-out alone, as the paper)")
+    if not guard:
+        result["notes"].append("ours' prediction without the novelty guard (--guard off: the roll-out alone, "
+                               "as the paper)")
     # scale-free errors: per bounding-box diagonal of the first held-out frame (data units)
     diagonal = bounding_box_diagonal(np.asarray(vertices[lo], dtype=np.float64))
     result["diagonal"] = diagonal
     for u in given:
-        errs = evaluate.prediction_errors(model, vertices, feats, lo, hi, u, horizons, methods, vae=vae)
+        errs = evaluate.prediction_errors(model, vertices, feats, lo, hi, u, horizons, methods, vae=vae, guard=guard)
         for m, r in errs.items():
             result["errors"].setdefault(m, {})[f"u{u}"] = r["centroid"]
             result["errors_aligned"].setdefault(m, {})[f"u{u}"] = r["rigid"]
@@ -372,7 +373,8 @@ def cmd_evaluate(args) -> int:
     # two given frames, so the extrapolating baselines have a velocity to continue
     starts = evaluate.prediction_starts(lo, hi, 2, 0)
     result["feature_change"] = evaluate.feature_change(model, feats, starts, 2, args.curve_frames,
-                                                       [m for m in methods if m != "zero_velocity"], vae)
+                                                       [m for m in methods if m != "zero_velocity"], vae,
+                                                       guard=guard)
     if gaps:
         result["completion"] = evaluate.completion_errors(
             model, vertices, feats, lo, hi, gaps, list(baselines.COMPLETION_METHODS), samples=args.samples,
