@@ -150,8 +150,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     train(data, run, config, device=args.device, resume=resume, force=not resume, progress=not args.quiet)
     seconds = time.perf_counter() - t0
     model = meshseq.load(run)
-    meta = json.loads((ckpt.resolve(run) / "model.json").read_text())
-    splits = [Split.from_dict(d["split"]) for d in meta["datasets"]]
+    splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
     reference = ensure_novelty(model, specs, splits)
     train_feats = np.concatenate([model.scaling.apply(f)[a:b] for f, s in zip(data.features, splits) for a, b in s.train])
     vae = train_vae_baseline(model, train_feats)
@@ -192,15 +191,14 @@ def rescore(done: dict, run: Path, record: Path, specs: list[str], args, kind: s
     """A finished record with some of its figures made again by today's code from the same checkpoint:
     ``update(model, block, verts, feats)`` for every block; the command is kept as ``KIND_command``."""
     import meshseq
-    from meshseq import checkpoint as ckpt
     from meshseq.data.windows import Split
     from meshseq.io import load_sequence
 
     model = meshseq.load(run)
     if model.iteration != done["iteration"]:
         raise SystemExit(f"{run}: the newest checkpoint is iteration {model.iteration}, the record {done['iteration']}")
-    meta = json.loads((ckpt.resolve(run) / "model.json").read_text())
-    done["novelty_reference"] = ensure_novelty(model, specs, [Split.from_dict(d["split"]) for d in meta["datasets"]])
+    splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
+    done["novelty_reference"] = ensure_novelty(model, specs, splits)
     for block in done["blocks"]:
         verts = load_sequence(block["sequence"]).vertices.astype(np.float64)
         update(model, block, verts, model.features(verts))
