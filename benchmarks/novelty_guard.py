@@ -113,17 +113,47 @@ def main() -> None:
                                       if a.shape[1] > i))
 
 
+def gap_starts(n_frames: int, gap: int, count: int = 12) -> np.ndarray:
+    """``count`` evenly spaced first keys of gaps of ``gap`` frames with ``CONTEXT`` frames on both sides."""
+    from meshseq.synthesize import CONTEXT
+
+    starts = np.arange(CONTEXT, n_frames - CONTEXT - gap - 1)
+    return starts[np.linspace(0, len(starts) - 1, min(count, len(starts))).astype(int)]
+
+
+def gap_errors(model, verts: np.ndarray, frames: np.ndarray, starts: np.ndarray, gap: int) -> np.ndarray:
+    """Per gap ``(P,)``: the mean in-between vertex error of completed features ``frames``
+    ``(P, gap + 2, V, C)`` (keys included) reconstructed through the true keys."""
+    from meshseq.align import per_vertex_error
+    from meshseq.synthesize import assemble_vertices
+
+    return np.array([per_vertex_error(assemble_vertices(model, frames[p], {0: verts[a], gap + 1: verts[a + gap + 1]})
+                                      [1:-1], verts[a + 1:a + gap + 1]).mean() for p, a in enumerate(starts)])
+
+
+def interpolation_error(model, verts: np.ndarray, feats: np.ndarray, starts: np.ndarray, gap: int) -> float:
+    """The better of linear interpolation of the features and of the vertices over the gaps."""
+    from meshseq import baselines
+    from meshseq.align import per_vertex_error
+
+    ends = starts + gap + 1
+    in_features = gap_errors(model, verts, np.stack([baselines.linear_interpolation(feats[a], feats[b], gap)
+                                                     for a, b in zip(starts, ends)]), starts, gap).mean()
+    in_vertices = np.mean([per_vertex_error(baselines.linear_interpolation(verts[a], verts[b], gap)[1:-1],
+                                            verts[a + 1:b]).mean() for a, b in zip(starts, ends)])
+    return float(min(in_features, in_vertices))
+
+
 def completion(model, specs: list[str]) -> None:
     """Per sequence and gap, ours over the better interpolation: from the keys alone, corrected
     where the keys are familiar (keys alone), and warmed up on 7 frames around the keys trusting
     the chains by ``context_fit`` (a run without the training latents) or by ``context_trust`` (the
     default); 12 gaps per length, each with 7 frames on both sides."""
 
-    from meshseq import baselines, novelty
-    from meshseq.align import per_vertex_error
+    from meshseq import novelty
     from meshseq.evaluate import completion_errors, context_chains
     from meshseq.io import load_sequence
-    from meshseq.synthesize import CONTEXT, assemble_vertices, join_chains
+    from meshseq.synthesize import CONTEXT, join_chains
 
     without = copy.copy(model)
     without.novelty = None
@@ -139,24 +169,14 @@ def completion(model, specs: list[str]) -> None:
                                       samples=1, max_starts=12, context=context)[str(gap)]
                 return r["ours"] / min(r["linear"], r["linear_vertices"])
 
-            starts = np.arange(lo, hi - gap - 1)
-            starts = starts[np.linspace(0, len(starts) - 1, min(12, len(starts))).astype(int)]
+            starts = gap_starts(len(verts), gap)
             fw, bw, _ = context_chains(model, feats, starts, gap, 0)
             anchored, corrected = join_chains(fw, bw, "anchored")[0], join_chains(fw, bw, "corrected")[0]
             familiar = novelty.guard_weight(np.maximum(nov[starts], nov[starts + gap + 1])).astype(np.float32)
             blended = anchored + familiar[:, None, None, None] * (corrected - anchored)
-
-            def error(f) -> float:
-                return float(np.mean([per_vertex_error(assemble_vertices(model, f[p], {0: verts[a], gap + 1:
-                                      verts[a + gap + 1]})[1:-1], verts[a + 1:a + gap + 1]).mean()
-                                      for p, a in enumerate(starts)]))
-
-            lines = min(error(np.stack([baselines.linear_interpolation(feats[a], feats[a + gap + 1], gap)
-                                        for a in starts])),
-                        float(np.mean([per_vertex_error(baselines.linear_interpolation(
-                            verts[a], verts[a + gap + 1], gap)[1:-1], verts[a + 1:a + gap + 1]).mean()
-                            for a in starts])))
-            cells.append(f"gap {gap}: keys {ours(model, 0):.2f} familiar-corrected {error(blended) / lines:.2f} "
+            lines = interpolation_error(model, verts, feats, starts, gap)
+            cells.append(f"gap {gap}: keys {ours(model, 0):.2f} "
+                         f"familiar-corrected {gap_errors(model, verts, blended, starts, gap).mean() / lines:.2f} "
                          f"context/fit {ours(without, CONTEXT):.2f} context/trust {ours(model, CONTEXT):.2f}")
         print(f"{spec.split(':')[-1]:28s} " + " | ".join(cells), flush=True)
 
@@ -165,11 +185,9 @@ def trust_paces(model, specs: list[str], paces: list[float], unseen: list[str]) 
     """Ours over the better interpolation at gaps 5 / 10 / 20 / 30 (12 gaps each, ``CONTEXT`` frames
     on both sides) with ``context_trust`` at each slowest trusted pace: the chains and both joins
     are made once, each pace's trust picks per gap the corrected join or the anchored one."""
-    from meshseq import baselines
-    from meshseq.align import per_vertex_error
     from meshseq.evaluate import context_chains
     from meshseq.io import load_sequence
-    from meshseq.synthesize import CONTEXT, assemble_vertices, context_trust, join_chains
+    from meshseq.synthesize import CONTEXT, context_trust, join_chains
 
     groups: dict[str, list] = {}
     for spec in specs:
@@ -177,22 +195,14 @@ def trust_paces(model, specs: list[str], paces: list[float], unseen: list[str]) 
         feats = model.features(verts).astype(np.float32)
         rows = []
         for gap in (5, 10, 20, 30):
-            starts = np.arange(CONTEXT, len(verts) - CONTEXT - gap - 1)
-            starts = starts[np.linspace(0, len(starts) - 1, min(12, len(starts))).astype(int)]
+            starts = gap_starts(len(verts), gap)
             fw, bw, _ = context_chains(model, feats, starts, gap, CONTEXT)
             ends = starts + gap + 1
             around = (np.stack([feats[a - CONTEXT:a] for a in starts]), feats[starts],
                       np.stack([feats[b + 1:b + CONTEXT + 1] for b in ends]), feats[ends])
-
-            def error(f: np.ndarray) -> np.ndarray:
-                return np.array([per_vertex_error(assemble_vertices(model, f[p], {0: verts[a], gap + 1: verts[b]})[1:-1],
-                                                  verts[a + 1:b]).mean() for p, (a, b) in enumerate(zip(starts, ends))])
-
-            anchored, corrected = (error(join_chains(fw, bw, j)[0]) for j in ("anchored", "corrected"))
-            lines = min(error(np.stack([baselines.linear_interpolation(feats[a], feats[b], gap)
-                                        for a, b in zip(starts, ends)])).mean(),
-                        float(np.mean([per_vertex_error(baselines.linear_interpolation(verts[a], verts[b], gap)[1:-1],
-                                                        verts[a + 1:b]).mean() for a, b in zip(starts, ends)])))
+            anchored, corrected = (gap_errors(model, verts, join_chains(fw, bw, j)[0], starts, gap)
+                                   for j in ("anchored", "corrected"))
+            lines = interpolation_error(model, verts, feats, starts, gap)
             rows.append([np.where(context_trust(model, *around, pace_trust=t), corrected, anchored).mean() / lines
                          for t in paces])
         rows = np.array(rows).T  # (paces, gaps)
