@@ -10,7 +10,7 @@ novelty against the training frames and its motion level next to the errors.
 
     python benchmarks/generalize.py --sets horse-gallop pcow crane bodies --iterations 2000 \\
         --out runs/generalize --bodies bodies1k.h5
-    python benchmarks/generalize.py --table runs/generalize/*.json      # Markdown tables
+    python benchmarks/generalize.py --table runs/generalize/*.json      # Markdown tables, targets
 
 Runs resume (a run folder with checkpoints continues to ``--iterations``), and a finished
 evaluation is reused, so a long benchmark continues across sessions. The body set (``bodies``:
@@ -35,6 +35,7 @@ HORIZONS = (5, 10, 15)
 GAPS = (5, 10, 20, 30)
 COMPLETION = ("ours", "stitch", "linear", "linear_vertices")
 PREDICTION = ("ours", "zero_velocity", "linear_acap", "vae_latent")
+HOLD_SUBJECT, HOLD_MOTION = "male_slim", "shake_arms"  # the body set's held-out subject and motion
 
 
 def body_specs(path: str, subject: str, motion: str) -> tuple[list[str], list[str]]:
@@ -121,10 +122,11 @@ def training_level(specs: list[str], splits) -> float:
 
 
 def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], args, holdout_at: str,
-            holdout: float = 0.2) -> dict:
+            holdout: float = 0.2, held_out: dict | None = None) -> dict:
     """Train (or resume) the default recipe on ``specs`` and score the held-out blocks.
 
-    ``scored``: ``(index into specs or None for an unseen sequence, spec)``.
+    ``scored``: ``(index into specs or None for an unseen sequence, spec)``; ``held_out``: for a
+    body set, ``{"subject": ..., "motion": ...}`` held out of training (kept in the record).
     """
     import meshseq
     from meshseq import checkpoint as ckpt
@@ -144,7 +146,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     data = load_training_data(specs)
     config = TrainConfig(iterations=args.iterations, seed=args.seed, holdout_at=holdout_at, holdout=holdout,
                          eval_every=0,
-                         checkpoint_every=min(500, args.iterations), keep=2)
+                         checkpoint_every=min(500, args.iterations), keep=2, **recipe_changes(args.change))
     t0 = time.perf_counter()
     resume = bool(ckpt.list_checkpoints(run))  # a run stopped before its first checkpoint starts over
     train(data, run, config, device=args.device, resume=resume, force=not resume, progress=not args.quiet)
@@ -167,7 +169,25 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     out = {"set": name, "holdout_at": holdout_at, "iteration": model.iteration, "seconds_training": seconds,
            "train": config.to_dict(), "novelty_reference": reference, "blocks": blocks,
            "command": "python benchmarks/generalize.py " + " ".join(args.argv)}
+    if held_out:
+        out["held_out"] = held_out
     record.write_text(json.dumps(out, indent=1))
+    return out
+
+
+def recipe_changes(changes: list[str]) -> dict:
+    """``--change KEY=VALUE`` options -> TrainConfig fields, each VALUE typed as its default's (for
+    controlled runs: one change against the default recipe, named in the record's ``train``)."""
+    from meshseq.training.config import TrainConfig
+
+    defaults = TrainConfig().to_dict()
+    out = {}
+    for change in changes:
+        key, _, value = change.partition("=")
+        if key not in defaults or not value:
+            raise SystemExit(f"--change {change!r}: expected KEY=VALUE with KEY a TrainConfig field")
+        kind = type(defaults[key])
+        out[key] = value if defaults[key] is None or kind is str else (value == "true" if kind is bool else kind(value))
     return out
 
 
@@ -297,6 +317,94 @@ def table(files: list[str]) -> str:
     return "\n".join(rows)
 
 
+TARGET_CELLS = [(u, h, key) for u in ("u1", "u3") for h in ("10", "15") for key in ("centroid", "rigid")]
+TARGETS = ("motion training shows: below 1", "novel motion: at most 1.5", "gaps 5 and 10: at most 1",
+           "gaps 20 and 30 (bodies, horse): below 1", "motion of 50: 0.7-1.3", "held-out subject: h15 at most 0.5, gap 30 at most 0.7")
+
+
+def block_kind(rec: dict, block: dict) -> str:
+    """``subject`` (a held-out subject's trained motion), ``novel`` (a motion never trained on, or a
+    held-out end at least one typical step from every training frame) or ``shown``."""
+    if rec["train"]["holdout"] != 0:
+        return "novel" if block["novelty"] >= 1 else "shown"
+    held = rec.get("held_out") or held_out_of(rec["command"])
+    name = block["sequence"].rsplit(":", 1)[-1]
+    return "novel" if name.endswith("_" + held["motion"]) else "subject"
+
+
+def held_out_of(command: str) -> dict:
+    """``{"subject", "motion"}`` a body-set record's command held out (records written before
+    they kept ``held_out``)."""
+    words = command.split()
+    def option(name, default):
+        return words[words.index(name) + 1] if name in words[:-1] else default
+    return {"subject": option("--hold-subject", HOLD_SUBJECT), "motion": option("--hold-motion", HOLD_MOTION)}
+
+
+def worst(values: list[tuple[float, str]], limit: float, strict: bool = False) -> str:
+    """A target's cell: the largest of ``(ratio, where)`` and whether it keeps to ``limit``."""
+    values = [v for v in values if not np.isnan(v[0])]
+    if not values:
+        return "-"
+    r, where = max(values)
+    met = r < limit if strict else r <= limit
+    return f"{r:.2f} met" if met else f"**{r:.2f}** ({where})"
+
+
+def block_name(block: dict) -> str:
+    """A block's sequence name without its file (``male_slim_walk``, ``pcow.npz``)."""
+    return block["sequence"].rsplit(":", 1)[-1].replace("\\", "/").rsplit("/", 1)[-1]
+
+
+def prediction_cells(rec: dict, kinds: tuple[str, ...], horizons=("10", "15")) -> list[tuple[float, str]]:
+    """``(ratio, where)`` of every target cell (``TARGET_CELLS``) at ``horizons`` of the blocks of ``kinds``."""
+    return [(prediction_ratio(b, u, h, key), f"{block_name(b)} {u} h{h}{' rigid' if key == 'rigid' else ''}")
+            for b in rec["blocks"] if block_kind(rec, b) in kinds for u, h, key in TARGET_CELLS if h in horizons]
+
+
+def gap_means(rec: dict, gaps: tuple[str, ...]) -> list[tuple[float, str]]:
+    """``(ratio, where)`` per gap: completion over the better interpolation, mean over the blocks."""
+    return [(float(np.mean([completion_ratio(b, g) for b in rec["blocks"] if g in b["completion"]])), f"gap {g}")
+            for g in gaps if any(g in b["completion"] for b in rec["blocks"])]
+
+
+def motion_target(rec: dict) -> str:
+    """Motion of 50 within 30% of the truth's on every block: the range, or the block furthest off."""
+    levels = [b["motion_50"] for b in rec["blocks"]]
+    far = max(rec["blocks"], key=lambda b: abs(np.log(b["motion_50"])))
+    if abs(np.log(far["motion_50"])) > np.log(1.3):
+        return f"**{far['motion_50']:.2f}** ({block_name(far)})"
+    lo, hi = f"{min(levels):.2f}", f"{max(levels):.2f}"
+    return f"{lo if lo == hi else lo + '-' + hi} met"
+
+
+def record_targets(rec: dict) -> list[str]:
+    """The six targets (``TARGETS``) for one record: the worst cell of each, or "-" where the record
+    has no block the target concerns."""
+    nonlinear = rec["set"].startswith("bodies") or rec["set"] == "horse-gallop"
+    subject = [b for b in rec["blocks"] if block_kind(rec, b) == "subject"]
+    held_subject = "-"
+    if subject:
+        gap30 = [(completion_ratio(b, "30"), f"{block_name(b)} gap 30") for b in subject if "30" in b["completion"]]
+        held_subject = f"{worst(prediction_cells(rec, ('subject',), ('15',)), 0.5)}; {worst(gap30, 0.7)}"
+    return [worst(prediction_cells(rec, ("subject", "shown")), 1.0, strict=True),
+            worst(prediction_cells(rec, ("novel",)), 1.5),
+            worst(gap_means(rec, ("5", "10")), 1.0),
+            worst(gap_means(rec, ("20", "30")), 1.0, strict=True) if nonlinear else "-",
+            motion_target(rec), held_subject]
+
+
+def targets_table(files: list[str]) -> str:
+    """Markdown: per record, the worst cell of each target (met, or the cell that misses it)."""
+    rows = ["| set, iterations | " + " | ".join(TARGETS) + " |", "|" + "---|" * (len(TARGETS) + 1)]
+    for f in files:
+        rec = json.loads(Path(f).read_text())
+        seed = rec["train"].get("seed", 0)
+        rows.append(f"| {rec['set']}, {rec['iteration']} it{f', seed {seed}' if seed else ''} | "
+                    + " | ".join(record_targets(rec)) + " |")
+    return "\n".join(rows)
+
+
 def main(argv=None) -> None:
     import sys
 
@@ -306,8 +414,11 @@ def main(argv=None) -> None:
     p.add_argument("--bodies", default=None, help="make-bodies HDF5 for the set 'bodies'")
     p.add_argument("--bodies-name", default="bodies", help="the body set's name in the records (e.g. bodies-parts "
                    "for a set made with make-bodies --parts)")
-    p.add_argument("--hold-subject", default="male_slim")
-    p.add_argument("--hold-motion", default="shake_arms")
+    p.add_argument("--hold-subject", default=HOLD_SUBJECT)
+    p.add_argument("--hold-motion", default=HOLD_MOTION)
+    p.add_argument("--change", action="append", default=[], metavar="KEY=VALUE",
+                   help="a controlled run: this TrainConfig field changed from the default recipe (give the "
+                   "set another --bodies-name)")
     p.add_argument("--iterations", type=int, default=2000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu")
@@ -322,7 +433,7 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     if args.table is not None:
-        print(table(args.table))
+        print(table(args.table) + "\n\n" + targets_table(args.table))
         return
     if args.threads:
         import torch
@@ -335,7 +446,8 @@ def main(argv=None) -> None:
                 raise SystemExit("--sets bodies needs --bodies FILE.h5 (meshseq make-bodies)")
             specs, held = body_specs(args.bodies, args.hold_subject, args.hold_motion)
             # the training sequences' own held-out ends, then the unseen sequences whole
-            run_set(args.bodies_name, specs, [(None, s) for s in held], args, "end", holdout=0.0)
+            run_set(args.bodies_name, specs, [(None, s) for s in held], args, "end", holdout=0.0,
+                    held_out={"subject": args.hold_subject, "motion": args.hold_motion})
             continue
         spec = str(SHARED / f"{name}.npz") if (SHARED / f"{name}.npz").is_file() else name
         for at in args.blocks:

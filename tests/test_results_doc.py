@@ -74,3 +74,35 @@ def test_the_generalisation_table_follows_its_records(tmp_path):
     seq = block["sequence"].replace("\\", "/").split("/")[-1]
     row = next(line for line in results.splitlines() if line.startswith(f"| {rec['set']} ") and f" | {seq} | " in line)
     assert row.split(" | ")[5] == f"{ours['10'] / best:.2f}"
+
+
+def _generalize():
+    spec = importlib.util.spec_from_file_location("generalize_benchmark", ROOT / "benchmarks" / "generalize.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _scale_ours(rec: dict, factor: float) -> None:
+    """Ours' prediction error set to ``factor`` x the best baseline's in every cell of ``rec``."""
+    for block in rec["blocks"]:
+        for per_u in block["prediction"].values():
+            for key, per_h in per_u["ours"].items():
+                for h in per_h:
+                    per_h[h] = factor * min(per_u[m][key][h] for m in per_u if m != "ours")
+
+
+def test_the_targets_table_marks_each_missed_target_with_the_cell_that_misses_it():
+    generalize = _generalize()
+    rec = json.loads((RECORDS / "generalize" / "bodies-at-end.json").read_text())
+    _scale_ours(rec, 0.4)
+    shown, novel, *_, subject = generalize.record_targets(rec)
+    assert shown == "0.40 met" and novel == "0.40 met" and subject.startswith("0.40 met; ")
+    _scale_ours(rec, 1.6)
+    shown, novel, *_, subject = generalize.record_targets(rec)
+    assert shown.startswith("**1.60** (male_slim_") and novel.startswith("**1.60** (") and "_shake_arms " in novel
+    assert subject.startswith("**1.60** (male_slim_") and " h15" in subject.split(";")[0]
+    for block in rec["blocks"]:
+        block["motion_50"] = 1.0
+    block["motion_50"] = 0.5
+    assert generalize.record_targets(rec)[4] == f"**0.50** ({block['sequence'].rsplit(':', 1)[-1]})"
