@@ -147,6 +147,40 @@ def test_pace_factor_compares_given_steps_with_the_expected_ones():
         predict(None, np.zeros((2, 3, 9), np.float32), 2, pace="fast")
 
 
+def test_carried_steps_start_from_the_given_velocity_and_hand_over_to_the_generated_steps():
+    from meshseq.synthesize import carried_steps
+
+    given = np.zeros((1, 3, 2, 1))
+    given[0, :, :, 0] = [[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]  # moving at +1 a frame
+    generated = 2.0 - np.arange(1, 31, dtype=float)[None, :, None, None] * np.ones((1, 30, 2, 1))  # -1 a frame
+    out = carried_steps(given, generated, carry=0.5)
+    steps = np.diff(np.concatenate([given[:, -1:], out], 1), axis=1)[0, :, 0, 0]
+    assert np.allclose(steps[:3], [0.0, -0.5, -0.75])  # 0.5 (+1) + 0.5 (-1), then halfway on each frame
+    assert abs(steps[-1] + 1.0) < 1e-6  # handed over to the generated velocity
+    assert np.array_equal(carried_steps(given, generated, carry=0.0), generated)
+    # a prefix is carried the same whatever follows it
+    assert np.allclose(carried_steps(given, generated[:, :7], carry=0.6), carried_steps(given, generated, carry=0.6)[:, :7])
+    one = carried_steps(given[:, -1:], generated, carry=0.5)  # one given frame: from the first generated step
+    assert np.allclose(one, generated)
+
+
+def test_prediction_continues_the_given_frames_velocity(model, trained):
+    """With 3 given frames of a training sequence, the first generated step is closer to the true
+    one with the carried steps than the model's own (carry 0), so the test could fail."""
+    from meshseq.synthesize import predict
+
+    x = model.features(trained[2].vertices)
+    starts = np.arange(0, len(x) - 4, 3)
+    given = np.stack([x[s:s + 3] for s in starts])
+    true_step = x[starts + 3] - x[starts + 2]
+    miss = {carry: np.linalg.norm(predict(model, given, 3, carry=carry, guard=False)[:, 0] - x[starts + 3])
+            for carry in (0.0, 0.6)}
+    assert miss[0.6] < miss[0.0]
+    assert np.linalg.norm(true_step) > 0  # the sequence moves
+    with pytest.raises(MeshseqError, match="carry"):
+        predict(model, given, 3, carry=1.0)
+
+
 def test_warm_up_uses_every_given_frame(model, trained):
     from meshseq.synthesize import predict
 
@@ -706,6 +740,7 @@ def test_synthesis_commands_list_the_library_methods_without_importing_it():
     assert synth_cmds.COMPLETION_METHODS == baselines.COMPLETION_METHODS
     assert synth_cmds.PACES == synthesize.PACES
     assert synth_cmds.CONTEXT == synthesize.CONTEXT
+    assert synth_cmds.CARRY == synthesize.CARRY
     assert set(synthesize.METHOD_JOINS) <= set(synth_cmds.COMPLETION_METHODS)
 
 

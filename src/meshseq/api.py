@@ -228,15 +228,18 @@ class Model:
     # -- synthesis (see meshseq.synthesize) ---------------------------------------------------
 
     def predict(self, frames, n_frames: int, sample: bool = False, pace: str = "given",
-                guard: bool = True) -> np.ndarray:
+                guard: bool = True, carry: float | None = None) -> np.ndarray:
         """Continue a motion.
 
         ``frames``: given vertices ``(U, V, 3)`` -> vertices ``(U + n, V, 3)``: the given frames
         (exactly), then ``n`` generated ones continuing from the last; or scaled features
-        ``(U, V, 9)`` -> the generated features ``(n, V, 9)``. ``pace`` and ``guard`` (the novelty
-        guard; False: the roll-out alone): see ``meshseq.synthesize.predict``.
+        ``(U, V, 9)`` -> the generated features ``(n, V, 9)``. ``pace``, ``guard`` (the novelty
+        guard; False: the roll-out alone) and ``carry`` (None: ``synthesize.CARRY``; 0: the model's
+        steps as they are): see ``meshseq.synthesize.predict``.
         """
         from meshseq import synthesize
+
+        carry = synthesize.CARRY if carry is None else carry
 
         f = np.asarray(frames)
         c = self.config.channels
@@ -244,10 +247,10 @@ class Model:
             raise MeshseqError(f"frames must be (U, {self.config.n_vertices}, 3) vertices or (U, "
                                f"{self.config.n_vertices}, {c}) scaled features, got shape {f.shape}")
         if f.shape[-1] == c:
-            return synthesize.predict(self, f, n_frames, sample=sample, pace=pace, guard=guard)
+            return synthesize.predict(self, f, n_frames, sample=sample, pace=pace, guard=guard, carry=carry)
         given = np.asarray(f, dtype=np.float64)
         feats = self.features(given)
-        gen = synthesize.predict(self, feats, n_frames, sample=sample, pace=pace, guard=guard)
+        gen = synthesize.predict(self, feats, n_frames, sample=sample, pace=pace, guard=guard, carry=carry)
         return synthesize.assemble_vertices(self, np.concatenate([feats, gen]),
                                             {i: given[i] for i in range(len(given))})
 

@@ -67,6 +67,35 @@ def pace_factor(given_steps: np.ndarray, expected_steps: np.ndarray) -> np.ndarr
     return np.minimum(given_steps.mean(1) / np.maximum(expected_steps.mean(1), 1e-12), 1.0)
 
 
+#: Share of the previous generated step each step keeps (``carried_steps``); the first step starts
+#: from the given frames' last one. 0: the model's steps as they are (the paper's roll-out).
+CARRY = 0.6
+
+
+def carried_steps(given: np.ndarray, generated: np.ndarray, carry: float = CARRY) -> np.ndarray:
+    """``generated`` ``(B, n, V, C)`` rebuilt from its steps, each step ``v_t = carry v_(t-1) +
+    (1 - carry) s_t`` (``s_t`` the generated step), starting from ``v_0`` the given frames' last step
+    ``(B, U, V, C)`` (U >= 2; with one given frame the first generated step).
+
+    The model's first steps do not continue the given motion (on its own training frames the first
+    generated step is at a cosine of about 0.1-0.2 with the true one, the given step at 0.9-1.0): the
+    carried steps start at the given velocity and hand over to the model's own within a few frames.
+    A prefix of the roll-out is carried the same however many frames follow it.
+    """
+    if carry <= 0 or generated.shape[1] == 0:
+        return generated
+    x = np.asarray(given)
+    steps = np.diff(np.concatenate([x[:, -1:], generated], axis=1), axis=1)
+    v = x[:, -1] - x[:, -2] if x.shape[1] > 1 else steps[:, 0]
+    out = np.empty_like(generated)
+    cur = x[:, -1]
+    for t in range(generated.shape[1]):  # a few array operations per frame
+        v = carry * v + (1.0 - carry) * steps[:, t]
+        cur = cur + v
+        out[:, t] = cur
+    return out
+
+
 def continued_placement(given: np.ndarray, generated: np.ndarray) -> np.ndarray:
     """``generated`` ``(B, n, V, 12)`` with its placement channels moved, whole, so that the first
     generated frame continues the given frames ``(B, U, V, 12)``: the last given placement plus the
@@ -85,7 +114,7 @@ def continued_placement(given: np.ndarray, generated: np.ndarray) -> np.ndarray:
 
 def predict(model, given, n_frames: int, state=None, sample: bool = False,
             bound: float | None = FEATURE_BOUND, pace: str = "given",
-            continue_placement: bool | None = None, guard: bool = True) -> np.ndarray:
+            continue_placement: bool | None = None, guard: bool = True, carry: float = CARRY) -> np.ndarray:
     """Generate ``n_frames`` frames after the given ones.
 
     Args:
@@ -108,11 +137,15 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
             the training frames or, with U >= 2, head where no training frame near them went
             (``novelty_weights``); no effect for a model stored without a novelty reference.
             False: the roll-out as it is (the paper's).
+        carry: the generated steps start from the given frames' velocity and keep this share of
+            the step before (``carried_steps``); 0: the model's steps as they are (the paper's).
     Returns:
         ``(n_frames, V, 9)`` (or ``(B, n_frames, V, 9)``) generated scaled features.
     """
     if pace not in PACES:
         raise MeshseqError(f"unknown pace {pace!r}; expected one of {', '.join(PACES)}")
+    if not 0.0 <= carry < 1.0:
+        raise MeshseqError(f"carry {carry!r}: expected a share in [0, 1) (0: the model's steps as they are)")
     x = _frames(given)
     single = x.ndim == 3
     if single:
@@ -137,6 +170,10 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         if bound is not None:
             cur = np.clip(cur, -bound, bound)
         out[:, t] = cur
+    if carry > 0:
+        out = carried_steps(x, out, carry)
+        if bound is not None:
+            np.clip(out, -bound, bound, out=out)
     if guard:
         weight = novelty_weights(model, x)
         if weight is not None:

@@ -22,6 +22,8 @@ PACES = ("given", "model")
 GUARDS = ("novelty", "off")
 #: ``meshseq.synthesize.CONTEXT`` (the same check)
 CONTEXT = 7
+#: ``meshseq.synthesize.CARRY`` (the same check)
+CARRY = 0.6
 
 
 def register(sub) -> None:
@@ -46,6 +48,9 @@ def register(sub) -> None:
                    "where no training frame near them went, blend the roll-out towards the given motion "
                    "continued and slowing (the model's own motion there is a guess); off: the roll-out "
                    "alone (the paper's)")
+    p.add_argument("--carry", type=float, default=CARRY, metavar="SHARE",
+                   help=f"the generated steps start from the given frames' velocity and keep this share of the "
+                   f"step before (default {CARRY}); 0: the model's steps as they are (the paper's)")
     _output(p)
     p.set_defaults(func=cmd_predict)
 
@@ -229,7 +234,9 @@ def cmd_predict(args) -> int:
     feats = model.features(given_v)
     if args.method == "ours":
         guard = args.guard == "novelty"
-        gen = synthesize.predict(model, feats, args.frames, pace=args.pace, guard=guard)
+        if not 0 <= args.carry < 1:
+            raise MeshseqError(f"--carry {args.carry}: expected a share in [0, 1) (0: the model's steps as they are)")
+        gen = synthesize.predict(model, feats, args.frames, pace=args.pace, guard=guard, carry=args.carry)
         weight = synthesize.novelty_weights(model, feats[None]) if guard else None
         if weight is not None and weight[0] < 1.0:
             print(f"note: the given frames (their poses, or where they head from there) are unlike the training "
