@@ -155,8 +155,10 @@ def test_carried_steps_start_from_the_given_velocity_and_hand_over_to_the_genera
     generated = 2.0 - np.arange(1, 31, dtype=float)[None, :, None, None] * np.ones((1, 30, 2, 1))  # -1 a frame
     out = carried_steps(given, generated, carry=0.5)
     steps = np.diff(np.concatenate([given[:, -1:], out], 1), axis=1)[0, :, 0, 0]
-    assert np.allclose(steps[:3], [0.0, -0.5, -0.75])  # 0.5 (+1) + 0.5 (-1), then halfway on each frame
+    assert np.allclose(steps[:3], [0.0, -0.5, -0.75])  # -1 + 0.5**t (+1 - -1): the difference fades
     assert abs(steps[-1] + 1.0) < 1e-6  # handed over to the generated velocity
+    wavy = generated + np.sin(np.arange(30.0))[None, :, None, None]  # a fast rhythm is kept once faded
+    assert np.allclose(np.diff(carried_steps(given, wavy, 0.5)[0, 20:], axis=0), np.diff(wavy[0, 20:], axis=0), atol=1e-5)
     assert np.array_equal(carried_steps(given, generated, carry=0.0), generated)
     # a prefix is carried the same whatever follows it
     assert np.allclose(carried_steps(given, generated[:, :7], carry=0.6), carried_steps(given, generated, carry=0.6)[:, :7])

@@ -67,33 +67,29 @@ def pace_factor(given_steps: np.ndarray, expected_steps: np.ndarray) -> np.ndarr
     return np.minimum(given_steps.mean(1) / np.maximum(expected_steps.mean(1), 1e-12), 1.0)
 
 
-#: Share of the previous generated step each step keeps (``carried_steps``); the first step starts
-#: from the given frames' last one. 0: the model's steps as they are (the paper's roll-out).
+#: Share of the given velocity's difference from the model's first step that each generated step
+#: keeps of the one before (``carried_steps``). 0: the model's steps as they are (the paper's roll-out).
 CARRY = 0.6
 
 
 def carried_steps(given: np.ndarray, generated: np.ndarray, carry: float = CARRY) -> np.ndarray:
-    """``generated`` ``(B, n, V, C)`` rebuilt from its steps, each step ``v_t = carry v_(t-1) +
-    (1 - carry) s_t`` (``s_t`` the generated step), starting from ``v_0`` the given frames' last step
-    ``(B, U, V, C)`` (U >= 2; with one given frame the first generated step).
+    """``generated`` ``(B, n, V, C)`` with the given frames' velocity carried into its first steps:
+    step t (from 1) becomes ``s_t + carry**t (v - s_1)``, ``s_t`` the generated steps and ``v`` the
+    given frames' last step ``(B, U, V, C)``; unchanged with one given frame (no velocity).
 
     The model's first steps do not continue the given motion (on its own training frames the first
-    generated step is at a cosine of about 0.1-0.2 with the true one, the given step at 0.9-1.0): the
-    carried steps start at the given velocity and hand over to the model's own within a few frames.
-    A prefix of the roll-out is carried the same however many frames follow it.
+    generated step is at a cosine of about 0.1-0.2 with the true one, the given step at 0.9-1.0):
+    the carried steps start at the given velocity and fade into the model's own, whose later steps
+    (and so the rhythm of a fast periodic motion) are kept. A prefix of the roll-out is carried the
+    same however many frames follow it.
     """
-    if carry <= 0 or generated.shape[1] == 0:
-        return generated
     x = np.asarray(given)
+    if carry <= 0 or generated.shape[1] == 0 or x.shape[1] < 2:
+        return generated
     steps = np.diff(np.concatenate([x[:, -1:], generated], axis=1), axis=1)
-    v = x[:, -1] - x[:, -2] if x.shape[1] > 1 else steps[:, 0]
-    out = np.empty_like(generated)
-    cur = x[:, -1]
-    for t in range(generated.shape[1]):  # a few array operations per frame
-        v = carry * v + (1.0 - carry) * steps[:, t]
-        cur = cur + v
-        out[:, t] = cur
-    return out
+    miss = (x[:, -1] - x[:, -2]) - steps[:, 0]  # (B, V, C)
+    fade = (carry ** np.arange(1, generated.shape[1] + 1)).astype(generated.dtype)  # (n,)
+    return x[:, -1:] + np.cumsum(steps + fade[None, :, None, None] * miss[:, None], axis=1)
 
 
 def continued_placement(given: np.ndarray, generated: np.ndarray) -> np.ndarray:
@@ -137,8 +133,9 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
             the training frames or, with U >= 2, head where no training frame near them went
             (``novelty_weights``); no effect for a model stored without a novelty reference.
             False: the roll-out as it is (the paper's).
-        carry: the generated steps start from the given frames' velocity and keep this share of
-            the step before (``carried_steps``); 0: the model's steps as they are (the paper's).
+        carry: with U >= 2 the generated steps start from the given frames' velocity, its
+            difference from the model's first step fading by this share a frame (``carried_steps``);
+            0: the model's steps as they are (the paper's).
     Returns:
         ``(n_frames, V, 9)`` (or ``(B, n_frames, V, 9)``) generated scaled features.
     """

@@ -49,8 +49,9 @@ def register(sub) -> None:
                    "continued and slowing (the model's own motion there is a guess); off: the roll-out "
                    "alone (the paper's)")
     p.add_argument("--carry", type=float, default=CARRY, metavar="SHARE",
-                   help=f"the generated steps start from the given frames' velocity and keep this share of the "
-                   f"step before (default {CARRY}); 0: the model's steps as they are (the paper's)")
+                   help=f"with --given 2 or more, the generated steps start from the given frames' velocity, its "
+                   f"difference from the model's own fading by this share a frame (default {CARRY}); 0: the "
+                   "model's steps as they are (the paper's)")
     _output(p)
     p.set_defaults(func=cmd_predict)
 
