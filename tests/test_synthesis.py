@@ -562,6 +562,7 @@ def test_predict_and_complete_commands(trained, tmp_path, capsys):
     (["complete", "{run}", "{data}", "--keyframes", "4,99"], "has frames 0..71"),
     (["complete", "{run}", "{data}", "--keyframes", "4"], "at least two keyframes"),
     (["predict", "{run}", "{data}", "--start", "70", "--given", "5"], "--given 5: only 2 frames"),
+    (["predict", "{run}", "{data}", "--given", "3", "--carry", "1.5"], "--carry 1.5: expected a share"),
     (["predict", "{run}", "{other}"], "another connectivity"),
     (["evaluate", "{run}", "{data}", "--range", "60:50"], "--range 60:50"),
 ])

@@ -67,8 +67,8 @@ def pace_factor(given_steps: np.ndarray, expected_steps: np.ndarray) -> np.ndarr
     return np.minimum(given_steps.mean(1) / np.maximum(expected_steps.mean(1), 1e-12), 1.0)
 
 
-#: Share of the given velocity's difference from the model's first step that each generated step
-#: keeps of the one before (``carried_steps``). 0: the model's steps as they are (the paper's roll-out).
+#: A frame's share of the difference between the given velocity and the model's first step, which
+#: fades into the model's own motion (``carried_steps``). 0: the model's steps as they are (the paper's).
 CARRY = 0.6
 
 

@@ -225,6 +225,8 @@ def cmd_predict(args) -> int:
         raise MeshseqError(f"--given {args.given}: expected at least 1")
     if args.frames < 1:
         raise MeshseqError(f"--frames {args.frames}: expected at least 1")
+    if not 0 <= args.carry < 1:
+        raise MeshseqError(f"--carry {args.carry}: expected a share in [0, 1) (0: the model's steps as they are)")
     model, seq = _load(args, backend)
     if not 0 <= args.start < seq.n_frames:
         raise MeshseqError(f"--start {args.start}: {args.data} has frames 0..{seq.n_frames - 1}")
@@ -235,8 +237,6 @@ def cmd_predict(args) -> int:
     feats = model.features(given_v)
     if args.method == "ours":
         guard = args.guard == "novelty"
-        if not 0 <= args.carry < 1:
-            raise MeshseqError(f"--carry {args.carry}: expected a share in [0, 1) (0: the model's steps as they are)")
         gen = synthesize.predict(model, feats, args.frames, pace=args.pace, guard=guard, carry=args.carry)
         weight = synthesize.novelty_weights(model, feats[None]) if guard else None
         if weight is not None and weight[0] < 1.0:
