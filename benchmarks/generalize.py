@@ -186,8 +186,13 @@ def recipe_changes(changes: list[str]) -> dict:
         key, _, value = change.partition("=")
         if key not in defaults or not value:
             raise SystemExit(f"--change {change!r}: expected KEY=VALUE with KEY a TrainConfig field")
-        kind = type(defaults[key])
-        out[key] = value if defaults[key] is None or kind is str else (value == "true" if kind is bool else kind(value))
+        default = defaults[key]
+        if default is None or isinstance(default, str):
+            out[key] = value
+        elif isinstance(default, bool):
+            out[key] = value == "true"
+        else:
+            out[key] = type(default)(value)
     return out
 
 
