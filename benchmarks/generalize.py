@@ -176,24 +176,31 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
 
 
 def recipe_changes(changes: list[str]) -> dict:
-    """``--change KEY=VALUE`` options -> TrainConfig fields, each VALUE typed as its default's (for
-    controlled runs: one change against the default recipe, named in the record's ``train``)."""
-    from meshseq.training.config import TrainConfig
+    """``--change KEY=VALUE`` options -> TrainConfig fields (for controlled runs: one change against
+    the default recipe, named in the record's ``train``): each a line of ``meshseq train --config``
+    (VALUE a TOML value; a bare word is taken as a string), checked as that file's lines are."""
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10, as meshseq.training.config.read_toml
+        import tomli as tomllib
 
-    defaults = TrainConfig().to_dict()
-    out = {}
+    from meshseq.errors import MeshseqError
+    from meshseq.training.config import config_from_table
+
+    table = {}
     for change in changes:
-        key, _, value = change.partition("=")
-        if key not in defaults or not value:
-            raise SystemExit(f"--change {change!r}: expected KEY=VALUE with KEY a TrainConfig field")
-        default = defaults[key]
-        if default is None or isinstance(default, str):
-            out[key] = value
-        elif isinstance(default, bool):
-            out[key] = value == "true"
-        else:
-            out[key] = type(default)(value)
-    return out
+        key, _, value = (part.strip() for part in change.partition("="))
+        try:
+            table.update(tomllib.loads(f"{key} = {value}"))
+        except tomllib.TOMLDecodeError:
+            table[key] = value
+    try:
+        train, model = config_from_table(table, "--change")
+    except MeshseqError as err:
+        raise SystemExit(str(err)) from None
+    if model:
+        raise SystemExit("--change: model options are not training options")
+    return train
 
 
 def ensure_novelty(model, specs: list[str], splits) -> str:

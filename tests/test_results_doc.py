@@ -106,3 +106,15 @@ def test_the_targets_table_marks_each_missed_target_with_the_cell_that_misses_it
         block["motion_50"] = 1.0
     block["motion_50"] = 0.5
     assert generalize.record_targets(rec)[4] == f"**0.50** ({block['sequence'].rsplit(':', 1)[-1]})"
+
+
+def test_controlled_run_changes_are_checked_as_config_lines():
+    import pytest
+
+    generalize = _generalize()
+    assert generalize.recipe_changes(["speed_augment=1.5", "input_norm=false", "ema_decay=none"]) == \
+        {"speed_augment": 1.5, "input_norm": False, "ema_decay": None}
+    with pytest.raises(SystemExit, match="speed: not a training option"):
+        generalize.recipe_changes(["speed=2"])
+    with pytest.raises(SystemExit, match="speed_augment: 0.5"):
+        generalize.recipe_changes(["speed_augment=0.5"])

@@ -359,8 +359,9 @@ def context_trust(model, before, key_a, after, key_b, pace_trust: float = PACE_T
     if getattr(model, "novelty", None) is None:
         return context_fit(model, before, key_a, after, key_b) < 1.0
     a, b = _frames(key_a), _frames(key_b)
-    # both keys' poses (each alone: a pair of keys is not a step)
-    familiar = np.minimum(novelty_weights(model, a[:, None]), novelty_weights(model, b[:, None])) >= 1.0
+    # both keys' poses, each alone (a pair of keys is not a step), in one batch
+    weights = novelty_weights(model, np.concatenate([a, b])[:, None])
+    familiar = np.minimum(weights[:len(a)], weights[len(a):]) >= 1.0
     paces = []
     if before is not None and np.shape(before)[1]:
         paces.append(context_pace(model, np.concatenate([_frames(before), a[:, None]], 1)))

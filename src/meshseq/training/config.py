@@ -311,8 +311,11 @@ def config_from_toml(path: str | Path, base: dict | None = None) -> tuple[dict, 
         [model]
         lstm_layers = 2
     """
-    table = read_toml(path)
-    file = str(path)
+    return config_from_table(read_toml(path), str(path), base)
+
+
+def config_from_table(table: dict, file: str, base: dict | None = None) -> tuple[dict, dict]:
+    """``config_from_toml`` of a table already read (``file``: what error messages name)."""
     kinds = {f.name: f.type for f in fields(TrainConfig)}
     train, model = {}, {}
     for key, value in table.items():
