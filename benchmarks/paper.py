@@ -195,14 +195,16 @@ def recipe_text(options: dict | None, window_kept: bool = False) -> str:
     Options a record lacks were added after it was made: it trained with their legacy values
     (``LEGACY_TRAIN_DEFAULTS``). Records without options predate the motion term.
     ``window_kept``: the default's window rule (``window_fit``) would have kept the record's
-    window, so a record made without the rule counts as made with it."""
+    window, so a record made without the rule counts as made with it. ``rollback`` is left out: it
+    changes nothing in a run whose loss never blew up, and a run that blew up without it trained on
+    from noise (its figures would show it)."""
     from meshseq.train import LEGACY_TRAIN_DEFAULTS, RECIPES
 
     if not options:
         return "w_motion 0 (no options recorded)"
     used = {**LEGACY_TRAIN_DEFAULTS, **options}
     diff = [f"{k} {used[k]}" for k, v in RECIPES["default"].items() if k in used and used[k] != v
-            and not (k == "window_fit" and window_kept)]
+            and not (k == "window_fit" and window_kept) and k != "rollback"]
     return "default recipe" if not diff else "default recipe except " + ", ".join(diff)
 
 

@@ -509,3 +509,77 @@ def test_config_file_errors_are_one_line_naming_the_file_and_key(text, message, 
     assert not (tmp_path / "run").exists()
     assert main(["train", "x.npz", "--out", str(tmp_path / "run"), "--config", str(tmp_path / "none.toml")]) == 2
     assert "none.toml" in capsys.readouterr().err
+
+
+# -- blow-ups (rollback) -----------------------------------------------------------------------
+
+
+def test_a_blow_up_is_a_loss_far_above_the_median_of_enough_iterations_before():
+    from meshseq.training.optim import BLOWUP, SNAPSHOT_EVERY, blown_up
+
+    history = [1.0, 3.0] * (SNAPSHOT_EVERY // 2)  # median 2
+    assert blown_up(2.0 * BLOWUP + 1e-6, history)
+    assert not blown_up(2.0 * BLOWUP, history)  # a spike, however large, up to the limit
+    assert not blown_up(1e9, history[:-1])  # too few iterations known yet
+
+
+def poisoned_loss(monkeypatch, bad_calls):
+    """WindowLoss whose total is multiplied by 1e6 on the calls numbered in ``bad_calls`` (1-based)."""
+    from meshseq.training import loop
+
+    calls = []
+
+    class Poisoned(loop.WindowLoss):
+        def forward(self, *args, **kwargs):
+            total, terms = super().forward(*args, **kwargs)
+            calls.append(1)
+            return (total * 1e6 if len(calls) in bad_calls else total), terms
+
+    monkeypatch.setattr(loop, "WindowLoss", Poisoned)
+
+
+@pytest.fixture
+def short_snapshots(monkeypatch):
+    """Snapshots (and the history a blow-up needs) every 4 iterations instead of 100."""
+    from meshseq.training import loop, optim
+
+    monkeypatch.setattr(optim, "SNAPSHOT_EVERY", 4)
+    monkeypatch.setattr(loop, "SNAPSHOT_EVERY", 4)
+
+
+def test_snapshots_leave_a_run_that_never_blows_up_unchanged(tmp_path, short_snapshots):
+    _, data = limb_data(frames=24)
+    weights = []
+    for rollback in (True, False):
+        cfg = TrainConfig(iterations=12, window=6, batch=2, eval_every=0, checkpoint_every=0, rollback=rollback)
+        train(data, tmp_path / str(rollback), cfg, SMALL, device="cpu", progress=False, log=None)
+        weights.append(meshseq.load(tmp_path / str(rollback)).net.state_dict())
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+
+def test_a_blow_up_goes_back_to_a_snapshot_at_half_the_learning_rate(tmp_path, monkeypatch, short_snapshots):
+    from meshseq.training.run import resume_point
+
+    _, data = limb_data(frames=24)
+    poisoned_loss(monkeypatch, {10})
+    said = []
+    cfg = TrainConfig(iterations=14, window=6, batch=2, eval_every=0, checkpoint_every=0, log_every=1)
+    out = train(data, tmp_path / "run", cfg, SMALL, device="cpu", progress=False, log=said.append)
+    assert out["iteration"] == 14
+    lines = [s for s in said if "blew up" in s]
+    assert len(lines) == 1 and "iteration 10:" in lines[0] and "weights of iteration 4" in lines[0], said
+    found = resume_point(tmp_path / "run")
+    groups = found.state_meta["optimizer"]["param_groups"]
+    assert [g["lr"] for g in groups] == [cfg.lr / 2] * len(groups)
+    assert found.state_meta["rollbacks"] == 1
+    assert all(torch.isfinite(v).all() for v in meshseq.load(tmp_path / "run").net.state_dict().values())
+    rows = read_metrics(tmp_path / "run")
+    assert float(rows[9]["loss"]) > 1e4 * float(rows[8]["loss"])  # the blow-up is in the metrics, as it happened
+
+
+def test_training_that_keeps_blowing_up_stops_with_one_line(tmp_path, monkeypatch, short_snapshots):
+    _, data = limb_data(frames=24)
+    poisoned_loss(monkeypatch, set(range(9, 100)))
+    cfg = TrainConfig(iterations=30, window=6, batch=2, eval_every=0, checkpoint_every=0)
+    with pytest.raises(MeshseqError, match=r"blew up at iteration 12 .* for the 4th time"):
+        train(data, tmp_path / "run", cfg, SMALL, device="cpu", progress=False, log=None)

@@ -235,6 +235,8 @@ _STATE = {
     "python_random": Opt(list),
     "world_size": Opt(int),
     "grad_norms": Opt([float]),
+    "losses": Opt([float]),
+    "rollbacks": Opt(int),
 }
 
 

@@ -58,7 +58,7 @@ LEGACY_TRAIN_DEFAULTS = {"fc_lr": "none", "w_motion": 0.0, "kl_scale": "none", "
                          "mu_max": None, "feedback_grad": "full", "tempo_augment": 0.0,
                          "fc_lr_fan_in": FC_REFERENCE_FAN_IN, "w_vertex": 0.0, "validation": 0.0,
                          "speed_augment": 1.0, "window_fit": "none",
-                         "placement_jitter": 0.0, "placement": "centroid"}
+                         "placement_jitter": 0.0, "placement": "centroid", "rollback": False}
 
 
 def is_positive_integer(x) -> bool:
@@ -115,7 +115,9 @@ class TrainConfig:
         (V x 9))): ``encoder`` scales the encoder's share of its gradient by f, ``fan-in`` its
         learning rate, [``none``] neither. logvar_max (0 [none]): clamp of the encoder's
         log-variance. mu_max (none): soft squash of the latent mean into (-X, X). grad_clip
-        (none): clip the gradient norm at X times the median of the last 100. ema_decay
+        (none): clip the gradient norm at X times the median of the last 100. rollback (True
+        [False]): a loss blow-up (``optim.blown_up``) sends training back to weights at least 100
+        iterations older, at half the learning rate (three times at most). ema_decay
         (0.99 [none]): checkpoints deliver a moving average of the weights. feedback_grad:
         ``full`` backpropagates through the frames fed back into the encoder, ``stop`` does not.
 
@@ -156,6 +158,7 @@ class TrainConfig:
     logvar_max: float | None = 0.0
     mu_max: float | None = None
     grad_clip: float | None = None
+    rollback: bool = True
     ema_decay: float | None = 0.99
     feedback_grad: str = "full"
     sample: bool = True
@@ -217,6 +220,8 @@ class TrainConfig:
             raise MeshseqError(f"mu_max {self.mu_max!r}: expected a positive number or none")
         if self.grad_clip is not None and not (is_finite_number(self.grad_clip) and self.grad_clip > 0):
             raise MeshseqError(f"grad_clip {self.grad_clip!r}: expected a positive number or none")
+        if not isinstance(self.rollback, (bool, np.bool_)):
+            raise MeshseqError(f"rollback {self.rollback!r}: expected true or false")
         if self.ema_decay is not None and not (is_finite_number(self.ema_decay) and 0 < self.ema_decay < 1):
             raise MeshseqError(f"ema_decay {self.ema_decay!r}: expected a number in (0, 1) or none")
         if self.feedback_grad not in FEEDBACK_GRADS:
@@ -238,8 +243,8 @@ class TrainConfig:
 
 #: The TrainConfig fields a recipe sets (``RECIPES``).
 RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "w_vertex", "given", "step_scale", "input_norm", "fc_lr",
-                  "fc_lr_fan_in", "kl_scale", "logvar_max", "mu_max", "grad_clip", "ema_decay", "feedback_grad",
-                  "window_fit")
+                  "fc_lr_fan_in", "kl_scale", "logvar_max", "mu_max", "grad_clip", "rollback", "ema_decay",
+                  "feedback_grad", "window_fit")
 #: Named recipes (``meshseq train --recipe``): values of the fields in ``RECIPE_OPTIONS``. ``paper``: the
 #: paper's recipe read literally (L_rec + 0.5 L_bd + 0.1 (L_KL + L_2), free-running chains, the
 #: encoder fed the scaled features as they are). ``default``: TrainConfig's defaults, each departure
@@ -247,8 +252,8 @@ RECIPE_OPTIONS = ("w_rec", "w_bd", "w_kl", "w_l2", "w_motion", "w_vertex", "give
 RECIPES = {
     "paper": {"w_rec": 1.0, "w_bd": 0.5, "w_kl": 0.1, "w_l2": 0.1, "w_motion": 0.0, "w_vertex": 0.0, "given": 1,
               "step_scale": "none", "input_norm": False, "fc_lr": "none", "fc_lr_fan_in": FC_REFERENCE_FAN_IN,
-              "kl_scale": "none", "logvar_max": None, "grad_clip": None, "ema_decay": None, "mu_max": None,
-              "feedback_grad": "full", "window_fit": "none"},
+              "kl_scale": "none", "logvar_max": None, "grad_clip": None, "rollback": False, "ema_decay": None,
+              "mu_max": None, "feedback_grad": "full", "window_fit": "none"},
     "default": {name: TrainConfig.__dataclass_fields__[name].default for name in RECIPE_OPTIONS},
 }
 

@@ -10,12 +10,15 @@ Processes, run folder and metrics: ``meshseq.training.run``; the objective:
 Divergence: every iteration checks the weighted loss terms, their total and the gradient norm
 for NaN/infinity before the update (one host synchronisation; under DDP one all-reduce of the
 flag); the first non-finite value stops training with a MeshseqError naming the iteration and the
-term, and the last good checkpoint stays the newest.
+term, and the last good checkpoint stays the newest. A finite loss that blows up (``rollback``:
+``optim.blown_up``) sends training back to a copy of its state kept in memory, at half the learning
+rate; a run that never blows up is the same bit for bit.
 """
 
 from __future__ import annotations
 
 import collections
+import copy
 import gc
 import os
 import random
@@ -37,8 +40,9 @@ from meshseq.novelty import NoveltyReference, reference_latents
 from meshseq.training.config import GRAD_CLIP_HISTORY, TrainConfig
 from meshseq.training.data import TrainingData, fit_window, step_spread, training_windows
 from meshseq.training.losses import WindowLoss, make_vertex_loss, reconstructed_vertices, window_losses
-from meshseq.training.optim import (autocast, average_decay, clip_threshold, copy_weights, divergence, fused_adam,
-                                    grad_norm, parameter_groups, scale_gradients, update_average, weights_swapped)
+from meshseq.training.optim import (LOSS_HISTORY, MAX_ROLLBACKS, SNAPSHOT_EVERY, autocast, average_decay, blown_up,
+                                    clip_threshold, copy_weights, divergence, fused_adam, grad_norm, parameter_groups,
+                                    scale_gradients, update_average, weights_swapped)
 from meshseq.training.run import (Dist, Metrics, freeze_setup_objects, prepare_run_dir, progress_bar, resume_point,
                                   start_processes, stderr_log, terms_text)
 
@@ -230,8 +234,8 @@ class _Setup:
 
 
 class _State:
-    """The model, its optimiser, the weight average and the gradient-norm history of a run, and
-    ``step``: one iteration's update."""
+    """The model, its optimiser, the weight average, the gradient-norm and loss histories of a run,
+    its snapshots (``rollback``), and ``step``: one iteration's update."""
 
     def __init__(self, model: BDLSTM, config: TrainConfig, dev: torch.device, dist_info: Dist):
         self.model, self.config, self.dist_info = model, config, dist_info
@@ -247,6 +251,10 @@ class _State:
         self.param_names = [n for n, _ in model.named_parameters()]
         self.average = None
         self.clipped = 0  # iterations whose gradient was clipped since the last metrics row
+        self.loss_history = collections.deque(maxlen=LOSS_HISTORY)  # the last losses, blow-ups left out
+        self.snapshots = collections.deque(maxlen=2)  # (iteration, weights, average, optimizer, gradient norms)
+        self.rollbacks = 0
+        self.log = lambda msg: None
         checked = [k for k in ("rec", "bd", "kl", "l2", "motion", "vertex") if getattr(config, f"w_{k}") != 0]
         self.checked = checked
         self.checked_names = [f"the loss term {k}" for k in checked] + ["the total loss", "the gradient norm"]
@@ -275,6 +283,9 @@ class _State:
                     raise MeshseqError(f"--resume: {found.folder}: the training state lacks the weights (train.*) "
                                        "behind its weight average (ema_decay)")
                 copy_weights(st.params, [raw[n] for n in st.param_names])
+        st.log = log
+        if config.rollback:
+            st.take_snapshot(st.start)
         if dist_info.rank > 0 and not st.own_rng:
             # different sampling noise per rank (the windows stay common)
             torch.manual_seed(config.seed + 7919 * dist_info.rank + st.start)
@@ -284,6 +295,8 @@ class _State:
         """The optimiser, generators, gradient history and iteration of checkpoint ``found``."""
         smeta, stensors = found.state_meta, found.state_tensors
         self.grad_history.extend(smeta.get("grad_norms", []))
+        self.loss_history.extend(smeta.get("losses", []))
+        self.rollbacks = int(smeta.get("rollbacks", 0))
         ckpt.load_optimizer_state(self.optimizer, self.names, stensors, smeta["optimizer"])
         self.own_rng = ckpt.set_rng_state(stensors, smeta, self.dist_info.rank)
         np_rng.bit_generator.state = smeta["numpy_rng"]
@@ -312,7 +325,12 @@ class _State:
             torch.distributed.all_reduce(finite, op=torch.distributed.ReduceOp.MIN)
         if not bool(finite):
             raise MeshseqError(divergence(it, self.checked_names, health.cpu(), config.lr, last_checkpoint))
-        norm = float(health[-1])
+        values = health.tolist()
+        loss, norm = values[-2], values[-1]
+        if config.rollback and self.blown_up(loss):
+            self.roll_back(it, loss)
+            return total, terms, norm
+        self.loss_history.append(loss)
         limit = clip_threshold(self.grad_history, config.grad_clip)
         self.grad_history.append(norm)
         if limit is not None and norm > limit:
@@ -321,7 +339,51 @@ class _State:
         self.optimizer.step()
         if self.average is not None:
             update_average(self.average, self.params, average_decay(config.ema_decay, it))
+        if config.rollback and it % SNAPSHOT_EVERY == 0:
+            self.take_snapshot(it)
         return total, terms, norm
+
+    def blown_up(self, loss: float) -> bool:
+        """``optim.blown_up`` of this process's loss, true on every process if on any."""
+        flag = blown_up(loss, self.loss_history)
+        if not self.dist_info.active:
+            return flag
+        t = torch.tensor(int(flag), device=self.params[0].device)
+        torch.distributed.all_reduce(t, op=torch.distributed.ReduceOp.MAX)
+        return bool(t)
+
+    def take_snapshot(self, it: int) -> None:
+        """Keep a copy of the weights, their average, Adam's state and the gradient norms of iteration ``it``."""
+        average = None if self.average is None else [a.clone() for a in self.average]
+        self.snapshots.append((it, [p.detach().clone() for p in self.params], average,
+                               copy.deepcopy(self.optimizer.state_dict()), list(self.grad_history)))
+
+    def roll_back(self, it: int, loss: float) -> None:
+        """Iteration ``it``'s loss blew up: restore the older snapshot kept, halve every learning
+        rate and go on (the windows drawn from here on differ from the first attempt's); a
+        MeshseqError after ``MAX_ROLLBACKS`` times."""
+        median = float(np.median(self.loss_history))
+        self.rollbacks += 1
+        if self.rollbacks > MAX_ROLLBACKS:
+            raise MeshseqError(f"training blew up at iteration {it} (loss {loss:.4g}, {loss / median:.0f} times the "
+                               f"median of the iterations before) for the {self.rollbacks}th time, after going back "
+                               f"{MAX_ROLLBACKS} times at ever half the learning rate; try a smaller lr than "
+                               f"{self.config.lr:g} (lr = ... in --config FILE.toml)")
+        at, params, average, optimizer, grads = self.snapshots[0]
+        copy_weights(self.params, params)
+        if average is not None:
+            copy_weights(self.average, average)
+        self.optimizer.load_state_dict(copy.deepcopy(optimizer))
+        for group in self.optimizer.param_groups:
+            group["lr"] *= 0.5
+        self.grad_history.clear()
+        self.grad_history.extend(grads)
+        self.snapshots.clear()
+        self.take_snapshot(it)
+        lr = self.optimizer.param_groups[0]["lr"]
+        self.log(f"iteration {it}: the loss blew up to {loss:.4g} ({loss / median:.0f} times the median of the "
+                 f"last {len(self.loss_history)} iterations); training went back to the weights of iteration {at} "
+                 f"and goes on at half the learning rate ({lr:g})")
 
 
 def _objective(model: BDLSTM, data: TrainingData, setup: _Setup, dev, dist_info: Dist, frames, truth):
@@ -414,7 +476,8 @@ class _Saver:
         opt_t, opt_meta = ckpt.optimizer_state(st.optimizer, st.names)
         _, rng_meta = ckpt.rng_state()
         state_meta = {"optimizer": opt_meta, "numpy_rng": self.np_rng.bit_generator.state, "world_size": self.dist_info.world,
-                      "grad_norms": list(st.grad_history), **rng_meta}
+                      "grad_norms": list(st.grad_history), "losses": list(st.loss_history),
+                      "rollbacks": st.rollbacks, **rng_meta}
         raw_t = {f"train.{n}": p for n, p in zip(st.param_names, st.params)} if st.average is not None else {}
         return ckpt.save_checkpoint(self.run_dir, iteration, tensors, meta, {**opt_t, **rng_t, **raw_t}, state_meta,
                                     setup.config.keep, name)
