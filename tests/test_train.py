@@ -523,8 +523,8 @@ def test_a_blow_up_is_a_loss_far_above_the_median_of_enough_iterations_before():
     assert not blown_up(1e9, history[:-1])  # too few iterations known yet
 
 
-def poisoned_loss(monkeypatch, bad_calls):
-    """WindowLoss whose total is multiplied by 1e6 on the calls numbered in ``bad_calls`` (1-based)."""
+def poisoned_loss(monkeypatch, bad_calls, factor=1e6):
+    """WindowLoss whose total is multiplied by ``factor`` on the calls numbered in ``bad_calls`` (1-based)."""
     from meshseq.training import loop
 
     calls = []
@@ -533,7 +533,7 @@ def poisoned_loss(monkeypatch, bad_calls):
         def forward(self, *args, **kwargs):
             total, terms = super().forward(*args, **kwargs)
             calls.append(1)
-            return (total * 1e6 if len(calls) in bad_calls else total), terms
+            return (total * factor if len(calls) in bad_calls else total), terms
 
     monkeypatch.setattr(loop, "WindowLoss", Poisoned)
 
@@ -581,5 +581,18 @@ def test_training_that_keeps_blowing_up_stops_with_one_line(tmp_path, monkeypatc
     _, data = limb_data(frames=24)
     poisoned_loss(monkeypatch, set(range(9, 100)))
     cfg = TrainConfig(iterations=30, window=6, batch=2, eval_every=0, checkpoint_every=0)
-    with pytest.raises(MeshseqError, match=r"blew up at iteration 12 .* for the 4th time"):
+    with pytest.raises(MeshseqError, match=r"diverged at iteration 12: the loss blew up to .* the 4th time"):
         train(data, tmp_path / "run", cfg, SMALL, device="cpu", progress=False, log=None)
+
+
+def test_a_loss_that_is_not_finite_goes_back_too_once_a_snapshot_is_old_enough(tmp_path, monkeypatch,
+                                                                               short_snapshots):
+    _, data = limb_data(frames=24)
+    poisoned_loss(monkeypatch, {10}, factor=float("nan"))
+    said = []
+    cfg = TrainConfig(iterations=12, window=6, batch=2, eval_every=0, checkpoint_every=0)
+    assert train(data, tmp_path / "run", cfg, SMALL, device="cpu", progress=False, log=said.append)["iteration"] == 12
+    assert [s for s in said if "not finite" in s] == [
+        "iteration 10: the loss is not finite; training went back to the weights of iteration 4 and goes on at "
+        f"half the learning rate ({cfg.lr / 2:g})"]
+    assert all(torch.isfinite(v).all() for v in meshseq.load(tmp_path / "run").net.state_dict().values())

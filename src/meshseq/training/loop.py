@@ -10,9 +10,10 @@ Processes, run folder and metrics: ``meshseq.training.run``; the objective:
 Divergence: every iteration checks the weighted loss terms, their total and the gradient norm
 for NaN/infinity before the update (one host synchronisation; under DDP one all-reduce of the
 flag); the first non-finite value stops training with a MeshseqError naming the iteration and the
-term, and the last good checkpoint stays the newest. A finite loss that blows up (``rollback``:
-``optim.blown_up``) sends training back to a copy of its state kept in memory, at half the learning
-rate; a run that never blows up is the same bit for bit.
+term, and the last good checkpoint stays the newest; with ``rollback``, once the run has gone 100
+iterations, such a value or a loss that blows up (``optim.blown_up``) sends training back to a copy
+of its state kept in memory, at half the learning rate, instead. A run that never blows up is the
+same bit for bit.
 """
 
 from __future__ import annotations
@@ -323,12 +324,16 @@ class _State:
         finite = torch.isfinite(health).all().to(torch.int32)
         if self.dist_info.active:
             torch.distributed.all_reduce(finite, op=torch.distributed.ReduceOp.MIN)
-        if not bool(finite):
-            raise MeshseqError(divergence(it, self.checked_names, health.cpu(), config.lr, last_checkpoint))
         values = health.tolist()
         loss, norm = values[-2], values[-1]
+        if not bool(finite):
+            if not (config.rollback and len(self.loss_history) >= SNAPSHOT_EVERY):  # too early to go back
+                raise MeshseqError(divergence(it, self.checked_names, health.cpu(), config.lr, last_checkpoint))
+            self.roll_back(it, "is not finite")
+            return total, terms, norm
         if config.rollback and self.blown_up(loss):
-            self.roll_back(it, loss)
+            self.roll_back(it, f"blew up to {loss:.4g} ({loss / float(np.median(self.loss_history)):.0f} times the "
+                                f"median of the last {len(self.loss_history)} iterations)")
             return total, terms, norm
         self.loss_history.append(loss)
         limit = clip_threshold(self.grad_history, config.grad_clip)
@@ -358,17 +363,16 @@ class _State:
         self.snapshots.append((it, [p.detach().clone() for p in self.params], average,
                                copy.deepcopy(self.optimizer.state_dict()), list(self.grad_history)))
 
-    def roll_back(self, it: int, loss: float) -> None:
-        """Iteration ``it``'s loss blew up: restore the older snapshot kept, halve every learning
-        rate and go on (the windows drawn from here on differ from the first attempt's); a
-        MeshseqError after ``MAX_ROLLBACKS`` times."""
-        median = float(np.median(self.loss_history))
+    def roll_back(self, it: int, what: str) -> None:
+        """Iteration ``it``'s loss blew up or is not finite (``what`` says which): restore the older
+        snapshot kept, halve every learning rate and go on (the windows drawn from here on differ
+        from the first attempt's); a MeshseqError after ``MAX_ROLLBACKS`` times. (A run resumed
+        fewer than 100 iterations before goes back to its resume point.)"""
         self.rollbacks += 1
         if self.rollbacks > MAX_ROLLBACKS:
-            raise MeshseqError(f"training blew up at iteration {it} (loss {loss:.4g}, {loss / median:.0f} times the "
-                               f"median of the iterations before) for the {self.rollbacks}th time, after going back "
-                               f"{MAX_ROLLBACKS} times at ever half the learning rate; try a smaller lr than "
-                               f"{self.config.lr:g} (lr = ... in --config FILE.toml)")
+            raise MeshseqError(f"training diverged at iteration {it}: the loss {what}, the {self.rollbacks}th time "
+                               f"after going back {MAX_ROLLBACKS} times, each at half the learning rate; try a "
+                               f"smaller lr than {self.config.lr:g} (lr = ... in --config FILE.toml)")
         at, params, average, optimizer, grads = self.snapshots[0]
         copy_weights(self.params, params)
         if average is not None:
@@ -381,9 +385,8 @@ class _State:
         self.snapshots.clear()
         self.take_snapshot(it)
         lr = self.optimizer.param_groups[0]["lr"]
-        self.log(f"iteration {it}: the loss blew up to {loss:.4g} ({loss / median:.0f} times the median of the "
-                 f"last {len(self.loss_history)} iterations); training went back to the weights of iteration {at} "
-                 f"and goes on at half the learning rate ({lr:g})")
+        self.log(f"iteration {it}: the loss {what}; training went back to the weights of iteration {at} and goes "
+                 f"on at half the learning rate ({lr:g})")
 
 
 def _objective(model: BDLSTM, data: TrainingData, setup: _Setup, dev, dist_info: Dist, frames, truth):
