@@ -1,0 +1,61 @@
+"""A run's prediction and completion on selection data (sequences no evaluation block holds), over
+the trivial answers: what a controlled run is compared by before anything is adopted.
+
+    python benchmarks/selection.py RUN SPEC ...
+
+Per sequence: ours (``predict``'s default) over the better of zero velocity and linear ACAP
+extrapolation at h5 / h10 / h15 with 1 and 3 given frames (starts every 4 frames over the whole
+sequence, centroid-aligned), and ours (``complete``'s default, 7 frames on both sides) over the
+better linear interpolation at gaps of 5 / 10 / 20 / 30 (12 gaps each); then the means and maxima.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from replay import ratios  # noqa: E402  (a sibling script)
+
+GAPS = (5, 10, 20, 30)
+
+
+def completion_ratios(model, verts: np.ndarray, feats: np.ndarray) -> np.ndarray:
+    """``(4,)`` ours over the better interpolation at ``GAPS``."""
+    from meshseq.evaluate import completion_errors
+    from meshseq.synthesize import CONTEXT
+
+    res = completion_errors(model, verts, feats, CONTEXT, len(verts) - CONTEXT, list(GAPS),
+                            ["ours", "linear", "linear_vertices"], samples=1, max_starts=12, context=CONTEXT)
+    return np.array([res[str(g)]["ours"] / min(res[str(g)]["linear"], res[str(g)]["linear_vertices"]) for g in GAPS])
+
+
+def main() -> None:
+    import meshseq
+    from meshseq.io import load_sequence
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run")
+    p.add_argument("specs", nargs="+")
+    args = p.parse_args()
+    model = meshseq.load(args.run)
+    rows: dict[str, list[np.ndarray]] = {"u1": [], "u3": [], "gaps": []}
+    fmt = "/".join
+    for spec in args.specs:
+        verts = load_sequence(spec).vertices.astype(np.float64)
+        feats = model.features(verts)
+        for u in (1, 3):
+            rows[f"u{u}"].append(ratios(model, verts, feats, u, 4, [1.0], [])["tempo 1"])
+        rows["gaps"].append(completion_ratios(model, verts, feats))
+        print(f"{spec.rsplit(':', 1)[-1]}  " + " | ".join(f"{k} {fmt(f'{x:.2f}' for x in v[-1])}" for k, v in rows.items()),
+              flush=True)
+    for k, v in rows.items():
+        a = np.array(v)
+        print(f"{k}: mean {fmt(f'{x:.2f}' for x in a.mean(0))}  max {fmt(f'{x:.2f}' for x in a.max(0))}")
+
+
+if __name__ == "__main__":
+    main()
