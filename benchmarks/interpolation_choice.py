@@ -17,8 +17,13 @@ feature scaling: the network is not used, so a run of one iteration serves.
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from novelty_guard import gap_starts  # noqa: E402  (a sibling script: the gaps as the benchmarks place them)
 
 GAPS = (5, 10, 20, 30)
 COLUMNS = ("features", "vertices", "average", "context pick", "oracle")
@@ -53,12 +58,10 @@ def gap_table(model, verts: np.ndarray, gap: int) -> np.ndarray | None:
     """``(5,)`` mean in-between error of each ``COLUMNS`` entry over the better of features and
     vertices, over 12 gaps of ``gap`` frames; None where the sequence is too short."""
     from meshseq.align import per_vertex_error
-    from meshseq.synthesize import CONTEXT
 
-    starts = np.arange(CONTEXT, len(verts) - CONTEXT - gap - 1)
+    starts = gap_starts(len(verts), gap)
     if not len(starts):
         return None
-    starts = starts[np.linspace(0, len(starts) - 1, min(12, len(starts))).astype(int)]
     feats = model.features(verts)
     rows = []
     for a in starts:

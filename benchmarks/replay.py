@@ -14,11 +14,13 @@ scaled by k; each over the better of zero velocity and linear ACAP extrapolation
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
-HORIZON = 15
-CELLS = [4, 9, 14]  # h5, h10, h15
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from novelty_guard import H as HORIZON, errors, vertex_errors  # noqa: E402  (a sibling script)
 
 
 def replayed(given_last: np.ndarray, rollout: np.ndarray, tempo: float) -> np.ndarray:
@@ -40,26 +42,19 @@ def scaled(given_last: np.ndarray, rollout: np.ndarray, amplitude: float) -> np.
 def ratios(model, verts: np.ndarray, feats: np.ndarray, given: int, every: int,
            tempos: list[float], amplitudes: list[float]) -> dict[str, np.ndarray]:
     """``{"tempo k" | "amplitude k": (3,)}`` ours replayed over the best baseline at h5 / h10 / h15."""
-    from meshseq.align import per_vertex_error
     from meshseq.evaluate import predicted_features, prediction_starts
     from meshseq.synthesize import predict
 
     starts = prediction_starts(0, len(verts), given, HORIZON, every)
     steps = np.arange(1, HORIZON + 1)
-    truth = np.stack([verts[s + given - 1 + steps] for s in starts]).reshape(-1, *verts.shape[1:])
-
-    def error(pred_feats=None, pred_verts=None) -> np.ndarray:
-        if pred_verts is None:
-            pred_verts = model.vertices(pred_feats.reshape(-1, *pred_feats.shape[2:]))
-        e = per_vertex_error(pred_verts.reshape(truth.shape), truth).mean(-1).reshape(len(starts), HORIZON)
-        return e.mean(0)[CELLS]
-
-    zero = error(pred_verts=np.repeat(np.stack([verts[s + given - 1] for s in starts])[:, None], HORIZON, 1))
-    best = np.minimum(zero, error(predicted_features("linear_acap", model, feats, starts, given, HORIZON, None)))
+    truth = np.stack([verts[s + given - 1 + steps] for s in starts])  # (B, H, V, 3)
+    zero = vertex_errors(np.repeat(np.stack([verts[s + given - 1] for s in starts])[:, None], HORIZON, 1), truth)
+    best = np.minimum(zero, errors(model, truth, predicted_features("linear_acap", model, feats, starts, given,
+                                                                    HORIZON, None)))
     x = np.stack([feats[s:s + given] for s in starts])
     rollout = predict(model, x, int(np.ceil(HORIZON / min(tempos + [1.0]))) + 1)
-    out = {f"tempo {k:g}": error(replayed(x[:, -1], rollout, k)) / best for k in tempos}
-    out.update({f"amplitude {k:g}": error(scaled(x[:, -1], rollout, k)) / best for k in amplitudes})
+    out = {f"tempo {k:g}": errors(model, truth, replayed(x[:, -1], rollout, k)) / best for k in tempos}
+    out.update({f"amplitude {k:g}": errors(model, truth, scaled(x[:, -1], rollout, k)) / best for k in amplitudes})
     return out
 
 

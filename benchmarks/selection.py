@@ -50,8 +50,8 @@ def main() -> None:
         for u in (1, 3):
             rows[f"u{u}"].append(ratios(model, verts, feats, u, 4, [1.0], [])["tempo 1"])
         rows["gaps"].append(completion_ratios(model, verts, feats))
-        print(f"{spec.rsplit(':', 1)[-1]}  " + " | ".join(f"{k} {fmt(f'{x:.2f}' for x in v[-1])}" for k, v in rows.items()),
-              flush=True)
+        cells = " | ".join(f"{k} {fmt(f'{x:.2f}' for x in v[-1])}" for k, v in rows.items())
+        print(f"{spec.rsplit(':', 1)[-1]}  {cells}", flush=True)
     for k, v in rows.items():
         a = np.array(v)
         print(f"{k}: mean {fmt(f'{x:.2f}' for x in a.mean(0))}  max {fmt(f'{x:.2f}' for x in a.max(0))}")
