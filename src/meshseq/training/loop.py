@@ -42,8 +42,8 @@ from meshseq.training.config import GRAD_CLIP_HISTORY, TrainConfig
 from meshseq.training.data import TrainingData, fit_window, step_spread, training_windows
 from meshseq.training.losses import WindowLoss, make_vertex_loss, reconstructed_vertices, window_losses
 from meshseq.training.optim import (LOSS_HISTORY, MAX_ROLLBACKS, SNAPSHOT_EVERY, autocast, average_decay, blown_up,
-                                    clip_threshold, copy_weights, divergence, fused_adam, grad_norm, parameter_groups,
-                                    scale_gradients, update_average, weights_swapped)
+                                    can_go_back, clip_threshold, copy_weights, divergence, fused_adam, grad_norm,
+                                    parameter_groups, scale_gradients, update_average, weights_swapped)
 from meshseq.training.run import (Dist, Metrics, freeze_setup_objects, prepare_run_dir, progress_bar, resume_point,
                                   start_processes, stderr_log, terms_text)
 
@@ -327,7 +327,7 @@ class _State:
         values = health.tolist()
         loss, norm = values[-2], values[-1]
         if not bool(finite):
-            if not (config.rollback and len(self.loss_history) >= SNAPSHOT_EVERY):  # too early to go back
+            if not (config.rollback and can_go_back(self.loss_history)):
                 raise MeshseqError(divergence(it, self.checked_names, health.cpu(), config.lr, last_checkpoint))
             self.roll_back(it, "is not finite")
             return total, terms, norm

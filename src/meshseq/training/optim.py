@@ -86,10 +86,16 @@ SNAPSHOT_EVERY = 100
 MAX_ROLLBACKS = 3
 
 
+def can_go_back(history) -> bool:
+    """Whether a run with ``history`` (its last iterations' losses) knows enough iterations
+    (``SNAPSHOT_EVERY``) for the blow-up test and to go back to a snapshot."""
+    return len(history) >= SNAPSHOT_EVERY
+
+
 def blown_up(loss: float, history) -> bool:
     """Whether an iteration's ``loss`` is a blow-up: above ``BLOWUP`` times the median of
-    ``history`` (the last iterations' losses, blow-ups left out), once ``SNAPSHOT_EVERY`` are known."""
-    if len(history) < SNAPSHOT_EVERY:
+    ``history`` (the last iterations' losses, blow-ups left out), once ``can_go_back``."""
+    if not can_go_back(history):
         return False
     return loss > BLOWUP * float(np.median(np.asarray(history, dtype=np.float64)))
 
