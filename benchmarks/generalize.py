@@ -36,6 +36,23 @@ GAPS = (5, 10, 20, 30)
 COMPLETION = ("ours", "stitch", "linear", "linear_vertices")
 PREDICTION = ("ours", "zero_velocity", "linear_acap", "vae_latent")
 HOLD_SUBJECT, HOLD_MOTION = "male_slim", "shake_arms"  # the body set's held-out subject and motion
+#: the pace rule of records scored before they named theirs (``synthesize.PACES``)
+PACE_UNNAMED = "warm-up"
+
+
+def scored_pace() -> str:
+    """The pace rule ours' predictions are scored with: ``predict``'s default."""
+    from meshseq.synthesize import PACES
+
+    return PACES[0]
+
+
+def record_label(rec: dict) -> str:
+    """``"bodies, 2000 it"``, with the seed where not 0 and the pace rule where not today's default."""
+    seed = rec["train"].get("seed", 0)
+    pace = rec.get("pace", PACE_UNNAMED)
+    return (f"{rec['set']}, {rec['iteration']} it{f', seed {seed}' if seed else ''}"
+            f"{f', pace {pace}' if pace != scored_pace() else ''}")
 
 
 def body_specs(path: str, subject: str, motion: str) -> tuple[list[str], list[str]]:
@@ -167,7 +184,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
         blocks.append(block)
         print(line(tag, block), flush=True)
     out = {"set": name, "holdout_at": holdout_at, "iteration": model.iteration, "seconds_training": seconds,
-           "train": config.to_dict(), "novelty_reference": reference, "blocks": blocks,
+           "pace": scored_pace(), "train": config.to_dict(), "novelty_reference": reference, "blocks": blocks,
            "command": "python benchmarks/generalize.py " + " ".join(args.argv)}
     if held_out:
         out["held_out"] = held_out
@@ -269,6 +286,7 @@ def rescore_prediction(done: dict, run: Path, record: Path, specs: list[str], ar
             block["prediction"][u]["ours"] = methods["ours"]
         block.update(motion_scores(model, verts, feats, train_level, lo, hi))
 
+    done["pace"] = scored_pace()
     return rescore(done, run, record, specs, args, "prediction", update)
 
 
@@ -321,8 +339,8 @@ def table(files: list[str]) -> str:
             pred = [ratio_cell(prediction_ratio(b, *cell)) for cell in cells]
             comp = [f"{completion_ratio(b, g):.2f}" if g in b["completion"] else "-" for g in ("5", "10", "20", "30")]
             block = "unseen sequence" if rec["train"]["holdout"] == 0 else f"@ {rec['holdout_at']}"
-            seed = rec["train"].get("seed", 0)
-            rows.append(f"| {rec['set']} {block}, {rec['iteration']} it{f', seed {seed}' if seed else ''} | "
+            name, _, rest = record_label(rec).partition(", ")
+            rows.append(f"| {name} {block}, {rest} | "
                         f"{Path(b['sequence']).name} | "
                         f"{b['novelty']:.1f} | "
                         f"{b['motion_level']:.2f} | {' | '.join(pred)} | {' | '.join(comp)} | {b['motion_50']:.2f} |")
@@ -411,9 +429,7 @@ def targets_table(files: list[str]) -> str:
     rows = ["| set, iterations | " + " | ".join(TARGETS) + " |", "|" + "---|" * (len(TARGETS) + 1)]
     for f in files:
         rec = json.loads(Path(f).read_text())
-        seed = rec["train"].get("seed", 0)
-        rows.append(f"| {rec['set']}, {rec['iteration']} it{f', seed {seed}' if seed else ''} | "
-                    + " | ".join(record_targets(rec)) + " |")
+        rows.append(f"| {record_label(rec)} | " + " | ".join(record_targets(rec)) + " |")
     return "\n".join(rows)
 
 

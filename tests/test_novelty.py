@@ -45,6 +45,19 @@ def test_direction_familiarity_compares_with_the_steps_of_the_nearest_training_f
                            0.0, 0.0])
 
 
+def test_training_pace_compares_given_steps_with_the_steps_training_took_at_those_poses():
+    # training: fast (steps of 2) near the origin, slow (steps of 0.2) near (10, 0), as at a swing's turn
+    lat = np.array([[0.0, 0.0], [2.0, 0.0], [10.0, 0.0], [10.2, 0.0]], np.float32)
+    steps = np.array([[2.0, 0.0], [2.0, 0.0], [0.2, 0.0], [0.2, 0.0]], np.float32)
+    ref = NoveltyReference(lat, 1.0, steps)
+    z = np.array([[[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]],  # steps of 1 where training took 2: half its pace
+                  [[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]],  # a pose held still
+                  [[0.0, 0.0], [3.0, 0.0], [6.0, 0.0]],  # faster than training: never sped up
+                  [[9.8, 0.0], [10.0, 0.0], [10.2, 0.0]]])  # slow, at a pose where training is slow too
+    assert np.allclose(novelty.training_pace(z, ref, neighbours=2), [0.5, 0.0, 1.0, 1.0])
+    assert np.allclose(novelty.training_pace(z[:1, 1:], ref, neighbours=2), 0.5)  # two given frames
+
+
 def test_guard_weight_falls_from_one_to_zero_between_start_and_end():
     w = novelty.guard_weight(np.array([0.0, novelty.GUARD_START, 3.0, novelty.GUARD_END, 50.0]))
     assert np.allclose(w, [1.0, 1.0, (novelty.GUARD_END - 3.0) / (novelty.GUARD_END - novelty.GUARD_START), 0.0, 0.0])

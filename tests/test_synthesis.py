@@ -147,6 +147,31 @@ def test_pace_factor_compares_given_steps_with_the_expected_ones():
         predict(None, np.zeros((2, 3, 9), np.float32), 2, pace="fast")
 
 
+def test_the_default_pace_compares_with_the_training_frames_and_warm_up_with_the_model(model, trained):
+    """``given`` scales the roll-out by ``novelty.training_pace`` of the given latents, ``warm-up`` by
+    ``pace_factor`` of the model's warm-up predictions (also ``given``'s rule for a model stored
+    without its training frames' latent steps)."""
+    import copy
+
+    from meshseq import novelty
+    from meshseq.synthesize import _rms, _warm_up, pace_factor, predict, roll_out_pace
+
+    v = trained[2].vertices
+    x = model.features(v[30] + np.array([0.0, 0.2, 0.4])[:, None, None] * (v[31] - v[30]))[None]  # a fifth of the pace
+    z = model.engine.encode(x[0])[None]
+    _, expected = _warm_up(model.engine, model.engine.initial_state(1, 0), x)
+    warm = pace_factor(_rms(x[:, 1:] - x[:, :-1]), expected)
+    ours = novelty.training_pace(z, model.novelty)
+    assert not np.allclose(ours, warm)  # the two rules differ here, so the test could fail
+    assert np.allclose(roll_out_pace(model, x, expected, "given", z)[:, 0, 0], ours)
+    assert np.allclose(roll_out_pace(model, x, expected, "warm-up", z)[:, 0, 0], warm)
+    assert roll_out_pace(model, x, expected, "model", z) is None and roll_out_pace(model, x[:, :1], expected, "given", z) is None
+    stepless = copy.copy(model)
+    stepless.novelty = novelty.NoveltyReference(model.novelty.latents, model.novelty.step, None)
+    assert np.array_equal(predict(stepless, x[0], 6), predict(stepless, x[0], 6, pace="warm-up"))
+    assert not np.array_equal(predict(model, x[0], 6), predict(model, x[0], 6, pace="warm-up"))
+
+
 def test_carried_steps_start_from_the_given_velocity_and_hand_over_to_the_generated_steps():
     from meshseq.synthesize import carried_steps
 

@@ -46,9 +46,11 @@ FEATURE_BOUND = 1.0
 
 
 #: How a prediction sets its pace (``predict``): ``given`` slows the roll-out to the given frames'
-#: pace where they move slower than the model expected of them; ``model`` keeps the model's own
-#: (the paper's roll-out).
-PACES = ("given", "model")
+#: pace where they move slower than the training frames nearest them did (``novelty.training_pace``;
+#: a model stored without its training frames' latent steps: ``warm-up``); ``warm-up`` compares the
+#: given steps with the steps the model predicted for them while warming up (``pace_factor``);
+#: ``model`` keeps the model's own (the paper's roll-out).
+PACES = ("given", "warm-up", "model")
 
 
 def _rms(d: np.ndarray) -> np.ndarray:
@@ -121,8 +123,11 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         sample: draw the VAE latent instead of taking its mean (the torch model only).
         bound: clamp every generated frame to ``[-bound, bound]`` (the training data fill
             ``[-0.95, 0.95]``), so long roll-outs stay within the data's range; None: no clamp.
-        pace: ``given`` (default): with U >= 2, every generated step is scaled by
-            ``pace_factor`` (a pose held still stays still, a slowing motion stays slow);
+        pace: ``given`` (default): with U >= 2, every generated step is scaled by the given
+            frames' pace over the pace of the training frames nearest them
+            (``novelty.training_pace``: a pose held still stays still, a slowing motion stays
+            slow); ``warm-up``: over the steps the model predicted for them (``pace_factor``; also
+            ``given``'s rule for a model stored without its training frames' latent steps);
             ``model``: the roll-out as trained. One given frame says nothing of the pace.
         continue_placement: on a mesh of several parts (12 channels), ``continued_placement``
             (no effect on 9 channels); False: the placement channels as rolled out; None (default):
@@ -155,9 +160,10 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         state = net.initial_state(bsz, 0)
     out = np.empty((bsz, int(n_frames)) + x.shape[2:], dtype=np.float32)
     state, expected = _warm_up(net, state, x, sample)
-    factor = None
-    if pace == "given" and u > 1:
-        factor = pace_factor(_rms(x[:, 1:] - x[:, :-1]), expected)[:, None, None]
+    latents = None
+    if getattr(model, "novelty", None) is not None and (guard or pace == "given" and u > 1):
+        latents = net.encode(x.reshape((bsz * u,) + x.shape[2:])).reshape(bsz, u, -1)
+    factor = roll_out_pace(model, x, expected, pace, latents)
     cur = x[:, -1]
     for t in range(int(n_frames)):  # free-running; the time loop is the only Python loop
         prev = cur
@@ -172,7 +178,7 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
         if bound is not None:
             np.clip(out, -bound, bound, out=out)
     if guard:
-        weight = novelty_weights(model, x)
+        weight = novelty_weights(model, x, latents)
         if weight is not None:
             out = novelty.guarded(out, x, weight)
             if bound is not None:
@@ -186,6 +192,20 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
     return out[0] if single else out
 
 
+def roll_out_pace(model, x: np.ndarray, expected: np.ndarray, pace: str, latents: np.ndarray | None):
+    """The factor ``(B, 1, 1)`` on every generated step after given frames ``x`` ``(B, U, V, C)``
+    (``expected``: ``_warm_up``'s, ``latents``: their latent means ``(B, U, L)`` or None), or None
+    for the model's own pace (``pace`` ``model``, or one given frame, which says nothing of it)."""
+    if pace == "model" or x.shape[1] < 2:
+        return None
+    reference = getattr(model, "novelty", None)
+    if pace == "given" and latents is not None and reference.steps is not None:
+        factor = novelty.training_pace(latents, reference)
+    else:  # warm-up, or a model stored without its training frames' latent steps
+        factor = pace_factor(_rms(x[:, 1:] - x[:, :-1]), expected)
+    return factor[:, None, None].astype(x.dtype)
+
+
 def _warm_up(net, state, x: np.ndarray, sample: bool = False):
     """Feed frames ``x`` ``(B, U, V, C)`` but the last to the forward chains from ``state``:
     ``(state', expected)``, ``expected`` ``(B, U-1)`` the RMS size of the step the model predicted
@@ -197,16 +217,18 @@ def _warm_up(net, state, x: np.ndarray, sample: bool = False):
     return state, (np.stack(expected, 1) if expected else np.zeros((x.shape[0], 0), np.float32))
 
 
-def novelty_weights(model, given: np.ndarray) -> np.ndarray | None:
+def novelty_weights(model, given: np.ndarray, latents: np.ndarray | None = None) -> np.ndarray | None:
     """The model's share ``(B,)`` of predictions after given frames ``(B, U, V, C)``: the guard
     weight of the most novel given frame, and with U >= 2 at most the direction weight of the last
     latent step (``meshseq.novelty``; a reference stored without training steps: the pose alone);
-    None for a model without a novelty reference."""
+    None for a model without a novelty reference. ``latents``: the given frames' latent means
+    ``(B, U, L)`` where already encoded."""
     reference = getattr(model, "novelty", None)
     if reference is None:
         return None
     bsz, u = given.shape[:2]
-    z = model.engine.encode(given.reshape((bsz * u,) + given.shape[2:])).reshape(bsz, u, -1)
+    z = latents if latents is not None else model.engine.encode(
+        given.reshape((bsz * u,) + given.shape[2:])).reshape(bsz, u, -1)
     weight = novelty.guard_weight(novelty.novelty(z, reference).max(axis=1))
     if u > 1 and reference.steps is not None:
         weight = np.minimum(weight, novelty.direction_weight(

@@ -17,7 +17,7 @@ from meshseq.errors import MeshseqError, MeshseqWarning
 PREDICTION_METHODS = ("ours", "zero_velocity", "linear_acap", "vae_latent")
 COMPLETION_METHODS = ("ours", "corrected", "stitch", "cma", "linear", "linear_vertices")
 #: ``meshseq.synthesize.PACES`` (the same check)
-PACES = ("given", "model")
+PACES = ("given", "warm-up", "model")
 #: prediction's guard against given frames unlike the training frames (``meshseq.novelty``)
 GUARDS = ("novelty", "off")
 #: ``meshseq.synthesize.CONTEXT`` (the same check)
@@ -41,8 +41,8 @@ def register(sub) -> None:
                    "vae_latent (a mesh VAE trained on the run's training frames on first use)")
     p.add_argument("--pace", choices=PACES, default=PACES[0],
                    help="given (default): with --given 2 or more, slow the roll-out to the given frames' pace "
-                   "where they move slower than the model expects (a pose held still stays still); "
-                   "model: the roll-out as trained")
+                   "where they move slower than the training frames nearest them (a pose held still stays "
+                   "still); warm-up: slower than the model predicted them; model: the roll-out as trained")
     p.add_argument("--guard", choices=GUARDS, default=GUARDS[0],
                    help="novelty (default): where the given frames are unlike every training frame, or head "
                    "where no training frame near them went, blend the roll-out towards the given motion "
