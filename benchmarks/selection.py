@@ -1,10 +1,10 @@
 """A run's prediction and completion on selection data (sequences no evaluation block holds), over
 the trivial answers: what a controlled run is compared by before anything is adopted.
 
-    python benchmarks/selection.py RUN SPEC ...
+    python benchmarks/selection.py RUN SPEC ... [--given 1,3] [--pace warm-up] [--prediction-only]
 
-Per sequence: ours (``predict``'s default) over the better of zero velocity and linear ACAP
-extrapolation at h5 / h10 / h15 with 1 and 3 given frames (starts every 4 frames over the whole
+Per sequence: ours (``predict``'s default, or its ``--pace``) over the better of zero velocity and
+linear ACAP extrapolation at h5 / h10 / h15 with 1 and 3 given frames (``--given``; starts every 4 frames over the whole
 sequence, centroid-aligned), and ours (``complete``'s default, 7 frames on both sides) over the
 better linear interpolation at gaps of 5 / 10 / 20 / 30 (12 gaps each); then the means and maxima.
 """
@@ -40,16 +40,23 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("run")
     p.add_argument("specs", nargs="+")
+    p.add_argument("--given", default="1,3", help="given frames of the predictions scored, comma-separated")
+    p.add_argument("--pace", default=None, help="predict's pace rule (default: its default)")
+    p.add_argument("--prediction-only", action="store_true", help="leave completion out")
     args = p.parse_args()
     model = meshseq.load(args.run)
-    rows: dict[str, list[np.ndarray]] = {"u1": [], "u3": [], "gaps": []}
+    given = [int(u) for u in args.given.split(",")]
+    rows: dict[str, list[np.ndarray]] = {f"u{u}": [] for u in given}
+    if not args.prediction_only:
+        rows["gaps"] = []
     fmt = "/".join
     for spec in args.specs:
         verts = load_sequence(spec).vertices.astype(np.float64)
         feats = model.features(verts)
-        for u in (1, 3):
-            rows[f"u{u}"].append(ratios(model, verts, feats, u, 4, [1.0], [])["tempo 1"])
-        rows["gaps"].append(completion_ratios(model, verts, feats))
+        for u in given:
+            rows[f"u{u}"].append(ratios(model, verts, feats, u, 4, [1.0], [], args.pace)["tempo 1"])
+        if not args.prediction_only:
+            rows["gaps"].append(completion_ratios(model, verts, feats))
         cells = " | ".join(f"{k} {fmt(f'{x:.2f}' for x in v[-1])}" for k, v in rows.items())
         print(f"{spec.rsplit(':', 1)[-1]}  {cells}", flush=True)
     for k, v in rows.items():
