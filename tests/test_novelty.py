@@ -54,8 +54,9 @@ def test_training_pace_compares_given_steps_with_the_steps_training_took_at_thos
                   [[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]],  # a pose held still
                   [[0.0, 0.0], [3.0, 0.0], [6.0, 0.0]],  # faster than training: never sped up
                   [[9.8, 0.0], [10.0, 0.0], [10.2, 0.0]]])  # slow, at a pose where training is slow too
-    assert np.allclose(novelty.training_pace(z, ref, neighbours=2), [0.5, 0.0, 1.0, 1.0])
-    assert np.allclose(novelty.training_pace(z[:1, 1:], ref, neighbours=2), 0.5)  # two given frames
+    assert np.allclose(novelty.training_pace(z, ref, neighbours=2, full=1.0), [0.5, 0.0, 1.0, 1.0])
+    assert np.allclose(novelty.training_pace(z[:1, 1:], ref, neighbours=2, full=1.0), 0.5)  # two given frames
+    assert np.allclose(novelty.training_pace(z, ref, neighbours=2, full=0.5), [1.0, 0.0, 1.0, 1.0])  # half counts as full
 
 
 def test_guard_weight_falls_from_one_to_zero_between_start_and_end():

@@ -46,6 +46,9 @@ HELD = 1e-3
 DIRECTION_NEIGHBOURS = 20
 #: training frames nearest each given pose whose step sizes set the pace expected there
 PACE_NEIGHBOURS = 5
+#: the share of the training's pace from which the given frames count as moving at it (the ratio of
+#: two step sizes scatters around 1 on a steady motion; without this margin it slows one a little)
+PACE_FULL = 0.9
 #: a frame's share of the previous frame's velocity in the fallback of two or more given frames
 FALLBACK_DECAY = 0.9
 #: training frames kept in a reference (evenly spaced beyond it)
@@ -117,12 +120,13 @@ def direction_familiarity(last: np.ndarray, previous: np.ndarray, reference: Nov
     return np.where(size > HELD * reference.step, cos.max(axis=1), 1.0)
 
 
-def training_pace(latents: np.ndarray, reference: NoveltyReference, neighbours: int = PACE_NEIGHBOURS) -> np.ndarray:
+def training_pace(latents: np.ndarray, reference: NoveltyReference, neighbours: int = PACE_NEIGHBOURS,
+                  full: float = PACE_FULL) -> np.ndarray:
     """``(B,)`` in [0, 1]: the mean latent step of given frames ``latents`` ``(B, U, L)``, U >= 2, over
-    the mean step size of the ``neighbours`` training frames nearest each given frame after the
-    first (``reference.steps`` must be present). 0 for a pose held still, 1 for a motion at least as
-    fast as training moves at those poses: at the turn of a swing the training frames there move
-    little too, so a turn is not taken for a slow-down."""
+    ``full`` times the mean step size of the ``neighbours`` training frames nearest each given frame
+    after the first (``reference.steps`` must be present). 0 for a pose held still, 1 for a motion at
+    least ``full`` as fast as training moves at those poses: at the turn of a swing the training
+    frames there move little too, so a turn is not taken for a slow-down."""
     z = np.asarray(latents, dtype=np.float64)
     bsz, u, size = z.shape
     given = np.linalg.norm(np.diff(z, axis=1), axis=-1).mean(1)
@@ -130,7 +134,7 @@ def training_pace(latents: np.ndarray, reference: NoveltyReference, neighbours: 
     near = np.argpartition(_nearest(z[:, 1:].reshape(-1, size), reference), k - 1, axis=1)[:, :k]
     step_sizes = np.linalg.norm(reference.steps.astype(np.float64), axis=1)[near]  # (B * (U - 1), k)
     expected = step_sizes.mean(1).reshape(bsz, u - 1).mean(1)
-    return np.minimum(given / np.maximum(expected, 1e-12 * reference.step), 1.0)
+    return np.minimum(given / np.maximum(full * expected, 1e-12 * reference.step), 1.0)
 
 
 def direction_weight(cos: np.ndarray, start: float = DIRECTION_START, end: float = DIRECTION_END) -> np.ndarray:
