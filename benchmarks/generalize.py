@@ -401,8 +401,8 @@ def gap_means(rec: dict, gaps: tuple[str, ...]) -> list[tuple[float, str]]:
 def motion_target(rec: dict) -> str:
     """Motion of 50 within 30% of the truth's on every block: the range, or the block furthest off."""
     levels = [b["motion_50"] for b in rec["blocks"]]
-    far = max(rec["blocks"], key=lambda b: abs(np.log(b["motion_50"])))
-    if abs(np.log(far["motion_50"])) > np.log(1.3):
+    far = max(rec["blocks"], key=lambda b: abs(np.log(max(b["motion_50"], 1e-12))))  # the furthest off, as a factor
+    if not all(0.7 <= m <= 1.3 for m in levels):
         return f"**{far['motion_50']:.2f}** ({block_name(far)})"
     lo, hi = f"{min(levels):.2f}", f"{max(levels):.2f}"
     return f"{lo if lo == hi else lo + '-' + hi} met"
