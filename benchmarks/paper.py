@@ -423,7 +423,8 @@ def generalization_section(files: list[Path]) -> list[str]:
         commands = [f"- {json.loads(Path(f).read_text())['set']}: `{json.loads(Path(f).read_text())['command']}`"
                     for f in controlled]
         lines += ["### Controlled runs", "",
-                  "The body set's benchmark run with one thing changed (seed and budget kept), named by its set "
+                  "The body set's (bodies-parts-*: the multi-part set's) benchmark run with one thing changed (seed and "
+                  "budget kept), named by its set "
                   "([method.md](method.md#what-the-generalisation-benchmark-leaves-unmet) says what each changes):", "",
                   *commands, "", *generalize.table(controlled).splitlines(), "",
                   *generalize.targets_table(controlled).splitlines(), ""]
