@@ -40,9 +40,10 @@ def scaled(given_last: np.ndarray, rollout: np.ndarray, amplitude: float) -> np.
 
 
 def ratios(model, verts: np.ndarray, feats: np.ndarray, given: int, every: int,
-           tempos: list[float], amplitudes: list[float], pace: str | None = None) -> dict[str, np.ndarray]:
+           tempos: list[float], amplitudes: list[float], pace: str | None = None,
+           carry: float | None = None) -> dict[str, np.ndarray]:
     """``{"tempo k" | "amplitude k": (3,)}`` ours replayed over the best baseline at h5 / h10 / h15
-    (``pace``: ``predict``'s, None for its default)."""
+    (``pace``, ``carry``: ``predict``'s, None for its default)."""
     from meshseq.evaluate import predicted_features, prediction_starts
     from meshseq.synthesize import predict
 
@@ -53,7 +54,8 @@ def ratios(model, verts: np.ndarray, feats: np.ndarray, given: int, every: int,
     best = np.minimum(zero, errors(model, truth, predicted_features("linear_acap", model, feats, starts, given,
                                                                     HORIZON, None)))
     x = np.stack([feats[s:s + given] for s in starts])
-    rollout = predict(model, x, int(np.ceil(HORIZON / min(tempos + [1.0]))) + 1, **({"pace": pace} if pace else {}))
+    options = {k: v for k, v in (("pace", pace), ("carry", carry)) if v is not None}
+    rollout = predict(model, x, int(np.ceil(HORIZON / min(tempos + [1.0]))) + 1, **options)
     out = {f"tempo {k:g}": errors(model, truth, replayed(x[:, -1], rollout, k)) / best for k in tempos}
     out.update({f"amplitude {k:g}": errors(model, truth, scaled(x[:, -1], rollout, k)) / best for k in amplitudes})
     return out

@@ -1,9 +1,9 @@
 """A run's prediction and completion on selection data (sequences no evaluation block holds), over
 the trivial answers: what a controlled run is compared by before anything is adopted.
 
-    python benchmarks/selection.py RUN SPEC ... [--given 1,3] [--pace warm-up] [--prediction-only]
+    python benchmarks/selection.py RUN SPEC ... [--given 1,3] [--pace warm-up] [--carry 0] [--prediction-only]
 
-Per sequence: ours (``predict``'s default, or its ``--pace``) over the better of zero velocity and
+Per sequence: ours (``predict``'s default, or its ``--pace`` / ``--carry``) over the better of zero velocity and
 linear ACAP extrapolation at h5 / h10 / h15 with 1 and 3 given frames (``--given``; starts every 4 frames over the whole
 sequence, centroid-aligned), and ours (``complete``'s default, 7 frames on both sides) over the
 better linear interpolation at gaps of 5 / 10 / 20 / 30 (12 gaps each); then the means and maxima.
@@ -42,6 +42,7 @@ def main() -> None:
     p.add_argument("specs", nargs="+")
     p.add_argument("--given", default="1,3", help="given frames of the predictions scored, comma-separated")
     p.add_argument("--pace", default=None, help="predict's pace rule (default: its default)")
+    p.add_argument("--carry", type=float, default=None, help="predict's carried share (default: its default)")
     p.add_argument("--prediction-only", action="store_true", help="leave completion out")
     args = p.parse_args()
     model = meshseq.load(args.run)
@@ -54,7 +55,7 @@ def main() -> None:
         verts = load_sequence(spec).vertices.astype(np.float64)
         feats = model.features(verts)
         for u in given:
-            rows[f"u{u}"].append(ratios(model, verts, feats, u, 4, [1.0], [], args.pace)["tempo 1"])
+            rows[f"u{u}"].append(ratios(model, verts, feats, u, 4, [1.0], [], args.pace, args.carry)["tempo 1"])
         if not args.prediction_only:
             rows["gaps"].append(completion_ratios(model, verts, feats))
         cells = " | ".join(f"{k} {fmt(f'{x:.2f}' for x in v[-1])}" for k, v in rows.items())
