@@ -30,7 +30,7 @@ import numpy as np
 
 FRAMES = 24
 KEYS = (1, 9, 17)
-PRED_AT, PRED_FRAMES = 10, 6
+PRED_AT, PRED_FRAMES, PRED_GIVEN = 10, 6, 3
 SAMPLES, SEED = 3, 0
 
 
@@ -159,11 +159,16 @@ def ops(out: Path, zip_path: str, meshseq: str, run: str) -> None:
 
     select_only(blob)
     scene.frame_set(PRED_AT)
-    s.frames, s.given = PRED_FRAMES, 1
+    assert s.given == PRED_GIVEN  # the panel's default
+    s.frames = PRED_FRAMES
     assert bpy.ops.meshseq.predict() == {"FINISHED"}
     pred = bpy.context.active_object
-    np.save(out / "predicted.npy", evaluated(pred, range(PRED_AT, PRED_AT + PRED_FRAMES + 1)))
+    np.save(out / "predicted.npy", evaluated(pred, range(PRED_AT - PRED_GIVEN + 1, PRED_AT + PRED_FRAMES + 1)))
     info["predicted_name"] = pred.name
+    select_only(blob)
+    scene.frame_set(2)  # one frame after the scene's first: the frames from there are given
+    assert bpy.ops.meshseq.predict() == {"FINISHED"}
+    np.save(out / "predicted_early.npy", evaluated(bpy.context.active_object, range(1, 2 + PRED_FRAMES + 1)))
 
     select_only(blob)
     scene.frame_set(1)

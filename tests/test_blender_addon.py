@@ -26,7 +26,7 @@ from meshseq.io import MeshSequence, load_sequence, save_sequence
 
 CLIENT = REPO_ROOT / "tests" / "blender_addon_client.py"
 KEYS = (1, 9, 17)  # the client's timeline markers (Blender frames; the animation is frames 1..24)
-PRED_AT, PRED_FRAMES = 10, 6
+PRED_AT, PRED_FRAMES, PRED_GIVEN = 10, 6, 3
 SAMPLES, SEED = 3, 0
 # Blender evaluates a relative shape key as basis - (basis - key): exact up to one float32 rounding
 ULP = 2 * np.finfo(np.float32).eps
@@ -139,14 +139,19 @@ def test_complete_operator_equals_the_command_through_exact_keys(trained, operat
 def test_predict_operator_equals_the_command(trained, operated, tmp_path):
     out, info = operated
     source, faces = np.load(out / "source.npy"), np.load(out / "faces.npy")
-    shown = np.load(out / "predicted.npy")  # frames PRED_AT..PRED_AT + PRED_FRAMES
-    assert info["predicted_name"] == "Blob_predicted" and shown.shape == (PRED_FRAMES + 1, *source.shape[1:])
-    given = source[PRED_AT - 1: PRED_AT]
-    np.testing.assert_array_equal(shown[0], given[0])  # the given frame is the copy's basis: exact
+    shown = np.load(out / "predicted.npy")  # frames PRED_AT - PRED_GIVEN + 1..PRED_AT + PRED_FRAMES
+    assert info["predicted_name"] == "Blob_predicted"
+    assert shown.shape == (PRED_GIVEN + PRED_FRAMES, *source.shape[1:])
+    given = source[PRED_AT - PRED_GIVEN: PRED_AT]  # the panel's default: 3 frames up to the current one
+    np.testing.assert_array_equal(shown[0], given[0])  # the first given frame is the copy's basis: exact
     expected = command_result(tmp_path, "blob", given, faces,
-                              ["predict", str(trained[0]), "--given", "1", "--frames", str(PRED_FRAMES)])
+                              ["predict", str(trained[0]), "--given", str(PRED_GIVEN), "--frames", str(PRED_FRAMES)])
     np.testing.assert_allclose(shown, expected, rtol=0, atol=1e-6)
     assert np.abs(shown[1:] - shown[0]).max() > 1e-3
+    early = np.load(out / "predicted_early.npy")  # at frame 2 of a scene from frame 1: two frames given
+    expected = command_result(tmp_path, "early", source[:2], faces,
+                              ["predict", str(trained[0]), "--given", "2", "--frames", str(PRED_FRAMES)])
+    np.testing.assert_allclose(early, expected, rtol=0, atol=1e-6)
 
 
 def test_samples_operator_makes_the_commands_samples_side_by_side(trained, operated, tmp_path):

@@ -582,6 +582,24 @@ def test_predict_and_complete_commands(trained, tmp_path, capsys):
         assert np.array_equal(load_sequence(o).vertices[[0, -1]], seq.vertices[[4, 12]])
 
 
+def test_predict_gives_three_frames_by_default_or_as_many_as_the_data_holds(trained, tmp_path, capsys):
+    run, data, seq = trained
+    outputs = {}
+    for name, argv in (("default", ["--start", "5"]), ("three", ["--start", "5", "--given", "3"]),
+                       ("one", ["--start", "7", "--given", "1"])):  # the same last given frame
+        outputs[name] = tmp_path / f"{name}.npz"
+        assert main(["predict", str(run), str(data), "--frames", "8", *argv, "-o", str(outputs[name])]) == 0
+    default = load_sequence(outputs["default"]).vertices
+    assert len(default) == 3 + 8 and np.array_equal(default[:3], seq.vertices[5:8])
+    np.testing.assert_array_equal(default, load_sequence(outputs["three"]).vertices)
+    assert not np.allclose(default[3:], load_sequence(outputs["one"]).vertices[1:], atol=1e-4)  # they steer it
+    last = seq.n_frames - 1
+    near_end = tmp_path / "end.npz"
+    assert main(["predict", str(run), str(data), "--start", str(last), "--frames", "4", "-o", str(near_end)]) == 0
+    assert load_sequence(near_end).n_frames == 1 + 4  # the one frame the data holds from there
+    assert "wrote" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("argv, fragment", [
     (["complete", "{run}", "{data}", "--keyframes", "15,4"], "strictly increasing"),
     (["complete", "{run}", "{data}", "--keyframes", "4,99"], "has frames 0..71"),

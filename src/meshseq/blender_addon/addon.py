@@ -399,10 +399,12 @@ def complete(context, samples: int, seed: int) -> list:
 
 def predict(context, frames: int, given: int) -> list:
     """Continue the active object ``frames`` frames after the current one, given the ``given``
-    frames up to the current one. Returns the new object (in a list)."""
+    frames up to the current one (those from the scene's first frame on, where it starts later).
+    Returns the new object (in a list)."""
     obj = context.active_object
     current = context.scene.frame_current
-    first = current - given + 1
+    first = min(current, max(current - given + 1, context.scene.frame_start))
+    given = current - first + 1
     run_dir = model_folder(context)
     workdir = tempfile.mkdtemp(prefix="meshseq_predict_")
     try:
@@ -442,7 +444,9 @@ class MeshseqSettings(bpy.types.PropertyGroup):
     train_args: StringProperty(name="Options", default="",
                                description="further options of `meshseq train`, e.g. --latent 64 --threads 2")
     frames: IntProperty(name="Frames", default=24, min=1, description="frames to predict after the current one")
-    given: IntProperty(name="Given", default=1, min=1, description="frames up to the current one given to the model")
+    given: IntProperty(name="Given", default=3, min=1,
+                       description="frames up to the current one given to the model (from 2 on it follows their "
+                       "direction and pace)")
     samples: IntProperty(name="Samples", default=4, min=2, max=32, description="diverse completions to make")
     seed: IntProperty(name="Seed", default=0, min=0, description="seed of the samples' random initial states")
 

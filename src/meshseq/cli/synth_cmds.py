@@ -24,6 +24,9 @@ GUARDS = ("novelty", "off")
 CONTEXT = 7
 #: ``meshseq.synthesize.CARRY`` (the same check)
 CARRY = 0.6
+#: given frames of ``predict`` where DATA holds them (from 2 on the roll-out follows their direction and
+#: pace: method.md, "5. Synthesis")
+DEFAULT_GIVEN = 3
 
 
 def register(sub) -> None:
@@ -34,7 +37,9 @@ def register(sub) -> None:
                        "first generated frame continues from the last given one.")
     _run_data(p)
     p.add_argument("--start", type=int, default=0, metavar="F", help="first given frame (default 0)")
-    p.add_argument("--given", type=int, default=1, metavar="U", help="how many frames to give (default 1)")
+    p.add_argument("--given", type=int, default=None, metavar="U",
+                   help=f"how many frames to give (default {DEFAULT_GIVEN}, or as many as DATA holds from --start: "
+                   "one frame says nothing of the motion's direction or pace)")
     p.add_argument("--frames", type=int, default=60, metavar="N", help="frames to generate (default 60)")
     p.add_argument("--method", choices=PREDICTION_METHODS, default="ours",
                    help="ours (the trained model, default) or a baseline: zero_velocity, linear_acap, "
@@ -221,7 +226,7 @@ def cmd_predict(args) -> int:
     from meshseq.io import check_output
 
     check_output(args.output, force=args.force)
-    if args.given < 1:
+    if args.given is not None and args.given < 1:
         raise MeshseqError(f"--given {args.given}: expected at least 1")
     if args.frames < 1:
         raise MeshseqError(f"--frames {args.frames}: expected at least 1")
@@ -230,6 +235,8 @@ def cmd_predict(args) -> int:
     model, seq = _load(args, backend)
     if not 0 <= args.start < seq.n_frames:
         raise MeshseqError(f"--start {args.start}: {args.data} has frames 0..{seq.n_frames - 1}")
+    if args.given is None:
+        args.given = min(DEFAULT_GIVEN, seq.n_frames - args.start)
     if args.start + args.given > seq.n_frames:
         raise MeshseqError(f"--given {args.given}: only {seq.n_frames - args.start} frames of {args.data} "
                            f"from --start {args.start}")
