@@ -38,6 +38,10 @@ PREDICTION = ("ours", "zero_velocity", "linear_acap", "vae_latent")
 HOLD_SUBJECT, HOLD_MOTION = "male_slim", "shake_arms"  # the body set's held-out subject and motion
 #: the pace rule of records scored before they named theirs (``synthesize.PACES``)
 PACE_UNNAMED = "warm-up"
+#: completion's trust in the chains (``synthesize.context_trust``): the frames around the keys at the
+#: pace training shows there and heading where it went (``training``), or, in records scored before
+#: they named theirs, at the pace the model's warm-up expected (``warm-up``)
+TRUST, TRUST_UNNAMED = "training", "warm-up"
 
 
 def scored_pace() -> str:
@@ -48,11 +52,11 @@ def scored_pace() -> str:
 
 
 def record_label(rec: dict) -> str:
-    """``"bodies, 2000 it"``, with the seed where not 0 and the pace rule where not today's default."""
+    """``"bodies, 2000 it"``, with the seed where not 0 and the pace and trust rules where not today's."""
     seed = rec["train"].get("seed", 0)
-    pace = rec.get("pace", PACE_UNNAMED)
+    pace, trust = rec.get("pace", PACE_UNNAMED), rec.get("trust", TRUST_UNNAMED)
     return (f"{rec['set']}, {rec['iteration']} it{f', seed {seed}' if seed else ''}"
-            f"{f', pace {pace}' if pace != scored_pace() else ''}")
+            f"{f', pace {pace}' if pace != scored_pace() else ''}{f', trust {trust}' if trust != TRUST else ''}")
 
 
 def body_specs(path: str, subject: str, motion: str) -> tuple[list[str], list[str]]:
@@ -184,7 +188,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
         blocks.append(block)
         print(line(tag, block), flush=True)
     out = {"set": name, "holdout_at": holdout_at, "iteration": model.iteration, "seconds_training": seconds,
-           "pace": scored_pace(), "train": config.to_dict(), "novelty_reference": reference, "blocks": blocks,
+           "pace": scored_pace(), "trust": TRUST, "train": config.to_dict(), "novelty_reference": reference, "blocks": blocks,
            "command": "python benchmarks/generalize.py " + " ".join(args.argv)}
     if held_out:
         out["held_out"] = held_out
@@ -268,6 +272,7 @@ def rescore_completion(done: dict, run: Path, record: Path, specs: list[str], ar
         block["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1,
                                                 context=CONTEXT)
 
+    done["trust"] = TRUST
     return rescore(done, run, record, specs, args, "completion", update)
 
 

@@ -110,15 +110,18 @@ def test_the_targets_table_marks_each_missed_target_with_the_cell_that_misses_it
     assert generalize.record_targets(rec)[4] == "0.75-1.00 met"
 
 
-def test_a_record_scored_with_another_pace_rule_says_so(tmp_path):
+def test_a_record_scored_with_another_pace_or_trust_rule_says_so(tmp_path):
     generalize = _generalize()
     rec = json.loads((RECORDS / "generalize" / "bodies-at-end.json").read_text())
-    assert rec["pace"] == generalize.scored_pace() and generalize.record_label(rec) == "bodies, 2000 it"
+    assert rec["pace"] == generalize.scored_pace() and rec["trust"] == generalize.TRUST
+    assert generalize.record_label(rec) == "bodies, 2000 it"
     del rec["pace"]  # scored before records named their pace
     assert generalize.record_label(rec) == "bodies, 2000 it, pace warm-up"
+    del rec["trust"]  # and their completion's trust
+    assert generalize.record_label(rec) == "bodies, 2000 it, pace warm-up, trust warm-up"
     path = tmp_path / "old.json"
     path.write_text(json.dumps(rec))
-    assert "| bodies unseen sequence, 2000 it, pace warm-up |" in generalize.table([str(path)])
+    assert "| bodies unseen sequence, 2000 it, pace warm-up, trust warm-up |" in generalize.table([str(path)])
 
 
 def test_controlled_run_changes_are_checked_as_config_lines():

@@ -297,10 +297,12 @@ def test_context_fit_trusts_frames_the_model_predicts_and_not_a_pose_held_still(
 def test_context_trust_needs_familiar_keys_and_frames_at_the_models_pace(model, trained):
     """``context_trust``: training frames around training keys are trusted; the same keys with a
     pose held still before them are not (pace 0), nor are keys the model never saw (negated
-    features); a model stored without the training latents falls back to ``context_fit``."""
+    features); a model stored without the training latents falls back to ``context_fit``, one
+    stored without their latent steps judges the frames by the warm-up's pace."""
     import copy
+    import dataclasses
 
-    from meshseq.synthesize import context_fit, context_pace, context_trust
+    from meshseq.synthesize import PACE_TRUST, context_fit, context_pace, context_trust, side_trust
 
     f = model.features(trained[2].vertices)
     before, key_a, key_b, after = f[None, 3:10], f[None, 10], f[None, 21], f[None, 22:29]
@@ -315,6 +317,12 @@ def test_context_trust_needs_familiar_keys_and_frames_at_the_models_pace(model, 
     old.novelty = None
     np.testing.assert_array_equal(context_trust(old, before, key_a, after, key_b),
                                   context_fit(model, before, key_a, after, key_b) < 1.0)
+    paths = np.concatenate([np.concatenate([before, key_a[:, None]], 1),
+                            np.concatenate([still, key_a[:, None]], 1)])  # moving, then held still
+    np.testing.assert_array_equal(side_trust(model, paths), [True, False])
+    no_steps = copy.copy(model)
+    no_steps.novelty = dataclasses.replace(model.novelty, steps=None)
+    np.testing.assert_array_equal(side_trust(no_steps, paths), context_pace(model, paths) >= PACE_TRUST)
 
 
 def test_context_frames_warm_the_chains_and_trusted_pairs_keep_the_corrected_join(model, trained):

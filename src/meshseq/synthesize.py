@@ -356,7 +356,8 @@ def _side_fit(path: np.ndarray, rolled: np.ndarray) -> np.ndarray:
     return err(rolled[:, 2:]).mean(1) / np.maximum(np.minimum(still, constant), 1e-12)
 
 
-#: the slowest pace (``pace_factor`` of the frames around the keys) at which the chains are trusted
+#: the slowest pace of the frames around the keys (``novelty.training_pace``; ``pace_factor`` for a run
+#: stored without the training frames' latent steps) at which the chains are trusted
 PACE_TRUST = 0.6
 #: frames on each side of the keys that ``meshseq complete`` gives the chains (``--context``)
 CONTEXT = 7
@@ -364,8 +365,8 @@ CONTEXT = 7
 
 def context_pace(model, path: np.ndarray) -> np.ndarray:
     """``(P,)`` ``pace_factor`` of frames ``path`` ``(P, n, V, C)`` (n >= 2, in time order) fed to
-    the model's forward chains from their trained state, as ``predict`` measures its given frames:
-    1 at the model's pace, less where the frames move slower than it expects."""
+    the model's forward chains from their trained state, as ``predict --pace warm-up`` measures its
+    given frames: 1 at the model's pace, less where the frames move slower than it expects."""
     x = _frames(path)
     _, expected = _warm_up(model.engine, model.engine.initial_state(x.shape[0], 0), x)
     return pace_factor(_rms(x[:, 1:] - x[:, :-1]), expected)
@@ -375,23 +376,37 @@ def context_trust(model, before, key_a, after, key_b, pace_trust: float = PACE_T
     """``(P,)`` bool: whether the chains between P pairs of keys may keep their own motion (the
     corrected join): both keys familiar (``meshseq.novelty``: the guard's weight is 1) and the frames
     given around them (``before`` ``(P, U_a, V, C)`` up to ``key_a``, ``key_b`` then ``after``
-    ``(P, U_b, V, C)``) moving at the model's pace (``context_pace`` >= ``pace_trust`` on each side
-    with frames; False where neither side has any). A model stored without the training frames'
-    latents: ``context_fit`` < 1 instead."""
+    ``(P, U_b, V, C)``) familiar motion (``side_trust`` on each side with frames; False where neither
+    side has any). A model stored without the training frames' latents: ``context_fit`` < 1 instead."""
     if getattr(model, "novelty", None) is None:
         return context_fit(model, before, key_a, after, key_b) < 1.0
     a, b = _frames(key_a), _frames(key_b)
     # both keys' poses, each alone (a pair of keys is not a step), in one batch
     weights = novelty_weights(model, np.concatenate([a, b])[:, None])
-    familiar = np.minimum(weights[:len(a)], weights[len(a):]) >= 1.0
-    paces = []
+    trusted = np.minimum(weights[:len(a)], weights[len(a):]) >= 1.0
+    sides = []
     if before is not None and np.shape(before)[1]:
-        paces.append(context_pace(model, np.concatenate([_frames(before), a[:, None]], 1)))
+        sides.append(np.concatenate([_frames(before), a[:, None]], 1))
     if after is not None and np.shape(after)[1]:
-        paces.append(context_pace(model, np.concatenate([b[:, None], _frames(after)], 1)))
-    if not paces:
+        sides.append(np.concatenate([b[:, None], _frames(after)], 1))
+    if not sides:
         return np.zeros(len(a), bool)
-    return familiar & (np.min(paces, axis=0) >= pace_trust)
+    for path in sides:
+        trusted &= side_trust(model, path, pace_trust)
+    return trusted
+
+
+def side_trust(model, path: np.ndarray, pace_trust: float = PACE_TRUST) -> np.ndarray:
+    """``(P,)`` bool: frames ``path`` ``(P, n, V, C)`` (n >= 2, in time order) beside a key move at
+    the pace training shows at their poses (``novelty.training_pace`` >= ``pace_trust``) and where
+    training went from there (``novelty_weights``, prediction's guard on them as given frames, is 1).
+    A model stored without the training frames' latent steps: ``context_pace`` >= ``pace_trust``."""
+    x = _frames(path)
+    if model.novelty.steps is None:
+        return context_pace(model, x) >= pace_trust
+    bsz, n = x.shape[:2]
+    z = model.engine.encode(x.reshape((bsz * n,) + x.shape[2:])).reshape(bsz, n, -1)
+    return (novelty.training_pace(z, model.novelty) >= pace_trust) & (novelty_weights(model, x, z) >= 1.0)
 
 
 def run_context_chains(model, keys_a, keys_b, n_between: int, state, before=None, after=None,
