@@ -582,7 +582,7 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
         before, after: ``(U_a, V, 9)`` / ``(U_b, V, 9)`` scaled features of the frames given just
             before key a / just after key b (time order; ``CONTEXT`` frames by default in the
             command). The chains warm up on them (``warm_chain_states``), and where the keys are
-            familiar and those frames move at the model's pace (``context_trust``) the
+            familiar and those frames move as training does there (``context_trust``) the
             ``anchored`` join keeps the chains' own motion (the corrected join) instead of
             drawing it toward the line.
     """

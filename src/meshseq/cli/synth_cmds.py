@@ -71,8 +71,8 @@ def register(sub) -> None:
                    help="frames to generate between consecutive keys (default: as many as DATA has there)")
     p.add_argument("--context", type=int, default=CONTEXT, metavar="N",
                    help=f"frames of DATA before the first key and after the last that ours' chains warm up on "
-                   f"(default {CONTEXT}); where the keys look like the training frames and these frames move at "
-                   "the model's pace, ours keeps the chains' own motion instead of drawing it toward the "
+                   f"(default {CONTEXT}); where the keys look like the training frames and these frames move as "
+                   "training does there (at its pace, where it went), ours keeps the chains' own motion instead of drawing it toward the "
                    "straight line between the keys. 0: the keys alone (as --samples K always: their random "
                    "initial states stay apart)")
     p.add_argument("--samples", type=int, default=1, metavar="K",
