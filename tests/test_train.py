@@ -393,7 +393,8 @@ def test_loaders_refuse_non_finite_weights_and_commands_write_no_non_finite_outp
     monkeypatch.setattr(synthesize, "predict", lambda model, feats, n, **kw: np.full((n,) + feats.shape[1:], np.nan))
     assert main(["predict", *common, "--frames", "3"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "not finite" in err and "frame 1 of 4" in err and not out.exists()
+    # 3 given frames (predict's default) and 3 generated: the first generated one is frame 3 of 6
+    assert err.count("\n") == 1 and "not finite" in err and "frame 3 of 6" in err and not out.exists()
     monkeypatch.undo()
     real_complete = synthesize.complete
 
