@@ -398,15 +398,18 @@ def context_trust(model, before, key_a, after, key_b, pace_trust: float = PACE_T
 
 def side_trust(model, path: np.ndarray, pace_trust: float = PACE_TRUST) -> np.ndarray:
     """``(P,)`` bool: frames ``path`` ``(P, n, V, C)`` (n >= 2, in time order) beside a key move at
-    the pace training shows at their poses (``novelty.training_pace`` >= ``pace_trust``) and where
-    training went from there (``novelty_weights``, prediction's guard on them as given frames, is 1).
-    A model stored without the training frames' latent steps: ``context_pace`` >= ``pace_trust``."""
+    the pace training shows at their poses (``novelty.training_pace`` >= ``pace_trust``) and their
+    last step heads where training went from there (prediction's direction check: its
+    ``novelty.direction_weight`` is 1). A model stored without the training frames' latent steps:
+    ``context_pace`` >= ``pace_trust``."""
     x = _frames(path)
-    if model.novelty.steps is None:
+    reference = model.novelty
+    if reference.steps is None:
         return context_pace(model, x) >= pace_trust
     bsz, n = x.shape[:2]
     z = model.engine.encode(x.reshape((bsz * n,) + x.shape[2:])).reshape(bsz, n, -1)
-    return (novelty.training_pace(z, model.novelty) >= pace_trust) & (novelty_weights(model, x, z) >= 1.0)
+    heading = novelty.direction_weight(novelty.direction_familiarity(z[:, -1], z[:, -2], reference))
+    return (novelty.training_pace(z, reference) >= pace_trust) & (heading >= 1.0)
 
 
 def run_context_chains(model, keys_a, keys_b, n_between: int, state, before=None, after=None,
