@@ -56,7 +56,8 @@ def main(argv: list[str] | None = None) -> None:
         d = nearest_distance(z, rest) / step
         medians.append(np.median(d))
         print(f"training, left out  {spec}: median {np.median(d):.2f}  p90 {np.percentile(d, 90):.2f}")
-    print(f"training, left out: median over sequences {np.median(medians):.2f}, range {min(medians):.2f}-{max(medians):.2f}")
+    print(f"training, left out: median over sequences {np.median(medians):.2f}, "
+          f"range {min(medians):.2f}-{max(medians):.2f}")
     for spec in args.specs:
         n = novelty.novelty(model.engine.encode(model.features(load_sequence(spec).vertices.astype(np.float64))),
                             model.novelty)

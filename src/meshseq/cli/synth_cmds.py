@@ -72,9 +72,9 @@ def register(sub) -> None:
     p.add_argument("--context", type=int, default=CONTEXT, metavar="N",
                    help=f"frames of DATA before the first key and after the last that ours' chains warm up on "
                    f"(default {CONTEXT}); where the keys look like the training frames and these frames move as "
-                   "training does there (at its pace, where it went), ours keeps the chains' own motion instead of drawing it toward the "
-                   "straight line between the keys. 0: the keys alone (as --samples K always: their random "
-                   "initial states stay apart)")
+                   "training does there (at its pace, where it went), ours keeps the chains' own motion instead "
+                   "of drawing it toward the straight line between the keys. 0: the keys alone (as --samples K "
+                   "always: their random initial states stay apart)")
     p.add_argument("--samples", type=int, default=1, metavar="K",
                    help="K completions from random initial states (default 1: the trained states)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
