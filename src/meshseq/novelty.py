@@ -16,7 +16,9 @@ step between the last two given frames then points where no training frame near 
 - ``guard_weight``: 1 up to ``GUARD_START`` steps, 0 from ``GUARD_END``, linear between.
 - ``direction_familiarity``: how well the given frames' last latent step lines up with the steps of
   the training frames nearest the last pose (the largest cosine); ``direction_weight``: 1 from
-  ``DIRECTION_END``, 0 up to ``DIRECTION_START``, linear between.
+  ``DIRECTION_END``, 0 up to ``DIRECTION_START``, linear between; ``heading_weight``: the two for the
+  last step of a run of latents.
+- ``training_pace``: the given frames' latent pace over the pace of the training frames nearest them.
 - ``fallback``: what prediction falls back to: the last given frame held (one given frame), or
   its velocity continued and damped by ``FALLBACK_DECAY`` a frame (two), by the given frames' own
   slowing where they slow faster, stopped where they turned back (three or more: ``own_decay``).
@@ -140,6 +142,12 @@ def training_pace(latents: np.ndarray, reference: NoveltyReference, neighbours: 
 def direction_weight(cos: np.ndarray, start: float = DIRECTION_START, end: float = DIRECTION_END) -> np.ndarray:
     """The model's share of a prediction whose given step has ``direction_familiarity`` ``cos``."""
     return np.clip((np.asarray(cos, dtype=np.float64) - start) / (end - start), 0.0, 1.0)
+
+
+def heading_weight(latents: np.ndarray, reference: NoveltyReference) -> np.ndarray:
+    """``(B,)``: ``direction_weight`` of the last step of latents ``(B, U, L)``, U >= 2 (whether it heads
+    where training went from that pose; ``reference.steps`` must be present)."""
+    return direction_weight(direction_familiarity(latents[:, -1], latents[:, -2], reference))
 
 
 def guard_weight(nov: np.ndarray, start: float = GUARD_START, end: float = GUARD_END) -> np.ndarray:

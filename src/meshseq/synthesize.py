@@ -162,7 +162,7 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
     state, expected = _warm_up(net, state, x, sample)
     latents = None
     if getattr(model, "novelty", None) is not None and (guard or pace == "given" and u > 1):
-        latents = net.encode(x.reshape((bsz * u,) + x.shape[2:])).reshape(bsz, u, -1)
+        latents = model.encode(x)
     factor = roll_out_pace(model, x, expected, pace, latents)
     cur = x[:, -1]
     for t in range(int(n_frames)):  # free-running; the time loop is the only Python loop
@@ -226,13 +226,10 @@ def novelty_weights(model, given: np.ndarray, latents: np.ndarray | None = None)
     reference = getattr(model, "novelty", None)
     if reference is None:
         return None
-    bsz, u = given.shape[:2]
-    z = latents if latents is not None else model.engine.encode(
-        given.reshape((bsz * u,) + given.shape[2:])).reshape(bsz, u, -1)
+    z = latents if latents is not None else model.encode(given)
     weight = novelty.guard_weight(novelty.novelty(z, reference).max(axis=1))
-    if u > 1 and reference.steps is not None:
-        weight = np.minimum(weight, novelty.direction_weight(
-            novelty.direction_familiarity(z[:, -1], z[:, -2], reference)))
+    if z.shape[1] > 1 and reference.steps is not None:
+        weight = np.minimum(weight, novelty.heading_weight(z, reference))
     return weight
 
 
@@ -406,10 +403,8 @@ def side_trust(model, path: np.ndarray, pace_trust: float = PACE_TRUST) -> np.nd
     reference = model.novelty
     if reference.steps is None:
         return context_pace(model, x) >= pace_trust
-    bsz, n = x.shape[:2]
-    z = model.engine.encode(x.reshape((bsz * n,) + x.shape[2:])).reshape(bsz, n, -1)
-    heading = novelty.direction_weight(novelty.direction_familiarity(z[:, -1], z[:, -2], reference))
-    return (novelty.training_pace(z, reference) >= pace_trust) & (heading >= 1.0)
+    z = model.encode(x)
+    return (novelty.training_pace(z, reference) >= pace_trust) & (novelty.heading_weight(z, reference) >= 1.0)
 
 
 def run_context_chains(model, keys_a, keys_b, n_between: int, state, before=None, after=None,
