@@ -44,11 +44,12 @@ def errors(model, truth: np.ndarray, feats: np.ndarray) -> np.ndarray:
     return vertex_errors(pred, truth)
 
 
-def vertex_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """Mean centroid-aligned error at h5 / h10 / h15 of predicted vertices ``(B, H, V, 3)``."""
+def vertex_errors(pred: np.ndarray, truth: np.ndarray, rigid: bool = False) -> np.ndarray:
+    """Mean centroid-aligned (``rigid``: also rotation-aligned) error at h5 / h10 / h15 of predicted
+    vertices ``(B, H, V, 3)``."""
     from meshseq.align import per_vertex_error
 
-    err = per_vertex_error(pred.reshape(-1, *pred.shape[2:]), truth.reshape(-1, *truth.shape[2:]))
+    err = per_vertex_error(pred.reshape(-1, *pred.shape[2:]), truth.reshape(-1, *truth.shape[2:]), rigid=rigid)
     return err.mean(-1).reshape(truth.shape[:2])[:, CELLS].mean(0)
 
 

@@ -17,13 +17,6 @@ import argparse
 import numpy as np
 
 
-def nearest_distance(z: np.ndarray, others: np.ndarray) -> np.ndarray:
-    """``(N,)`` distance of each latent ``z`` ``(N, L)`` to the nearest of ``others`` ``(M, L)``."""
-    a, b = z.astype(np.float64), others.astype(np.float64)
-    d2 = (a * a).sum(1)[:, None] - 2.0 * a @ b.T + (b * b).sum(1)[None]
-    return np.sqrt(np.maximum(d2.min(1), 0.0))
-
-
 def training_latents(model) -> list[tuple[str, np.ndarray]]:
     """``[(spec, (N_i, L) latent means of its training frames)]`` for each of the run's data sets."""
     from meshseq.data.windows import Split
@@ -34,7 +27,7 @@ def training_latents(model) -> list[tuple[str, np.ndarray]]:
         split = Split.from_dict(d["split"])
         feats = model.features(load_sequence(d["source"]).vertices.astype(np.float64))
         segments = [feats[a:b] for a, b in split.train if b - a > 1]
-        out.append((d["source"], np.concatenate([model.engine.encode(s) for s in segments])))
+        out.append((d["source"], np.concatenate([model.encode(s) for s in segments])))
     return out
 
 
@@ -48,18 +41,18 @@ def main(argv: list[str] | None = None) -> None:
     from meshseq.io import load_sequence
 
     model = meshseq.load(args.run)
-    step = model.novelty.step
     train = training_latents(model)
     medians = []
     for i, (spec, z) in enumerate(train):
-        rest = np.concatenate([t for j, (_, t) in enumerate(train) if j != i])
-        d = nearest_distance(z, rest) / step
+        rest = novelty.NoveltyReference(np.concatenate([t for j, (_, t) in enumerate(train) if j != i]),
+                                        model.novelty.step)
+        d = novelty.novelty(z, rest)
         medians.append(np.median(d))
         print(f"training, left out  {spec}: median {np.median(d):.2f}  p90 {np.percentile(d, 90):.2f}")
     print(f"training, left out: median over sequences {np.median(medians):.2f}, "
           f"range {min(medians):.2f}-{max(medians):.2f}")
     for spec in args.specs:
-        n = novelty.novelty(model.engine.encode(model.features(load_sequence(spec).vertices.astype(np.float64))),
+        n = novelty.novelty(model.encode(model.features(load_sequence(spec).vertices.astype(np.float64))),
                             model.novelty)
         print(f"other               {spec}: median {np.median(n):.2f}  p10 {np.percentile(n, 10):.2f}", flush=True)
 

@@ -12,31 +12,26 @@ and how many starts the training pace (``novelty.training_pace``) slows below 0.
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from novelty_guard import H as HORIZON, vertex_errors  # noqa: E402  (a sibling script: h5 / h10 / h15)
+
 RULES = {"default": {}, "pace model": {"pace": "model"}, "carry 0": {"carry": 0.0},
          "pace model, carry 0": {"pace": "model", "carry": 0.0}}
-HORIZONS = (5, 10, 15)
-
-
-def errors(pred: np.ndarray, truth: np.ndarray, rigid: bool) -> np.ndarray:
-    """``(len(HORIZONS),)`` mean per-vertex error of ``pred`` against ``truth`` ``(B, H, V, 3)``."""
-    from meshseq.align import per_vertex_error
-
-    e = per_vertex_error(pred.reshape(-1, *pred.shape[2:]), truth.reshape(-1, *truth.shape[2:]), rigid=rigid)
-    curve = e.mean(-1).reshape(truth.shape[:2]).mean(0)
-    return curve[np.array(HORIZONS) - 1]
 
 
 def rule_ratios(model, verts: np.ndarray, given: int, every: int) -> tuple[dict, float]:
     """``({rule: {"centroid" / "rigid": (3,)}}, share of starts slowed)``: each rule's error over
-    zero velocity's at ``HORIZONS`` for one sequence ``(T, V, 3)``."""
+    zero velocity's at h5 / h10 / h15 for one sequence ``(T, V, 3)``."""
     from meshseq import novelty
     from meshseq.evaluate import prediction_starts
     from meshseq.synthesize import predict
 
-    h = max(HORIZONS)
+    h = HORIZON
     starts = prediction_starts(0, len(verts), given, h, every)
     feats = model.features(verts)
     steps = np.arange(1, h + 1)
@@ -47,11 +42,11 @@ def rule_ratios(model, verts: np.ndarray, given: int, every: int) -> tuple[dict,
     for name, options in RULES.items():
         f = predict(model, x, h, **options)
         pred = model.vertices(f.reshape(-1, *f.shape[2:])).reshape(truth.shape)
-        out[name] = {key: errors(pred, truth, rigid) / errors(zero, truth, rigid)
+        out[name] = {key: vertex_errors(pred, truth, rigid) / vertex_errors(zero, truth, rigid)
                      for key, rigid in (("centroid", False), ("rigid", True))}
     slowed = float("nan")
     if given > 1 and getattr(model, "novelty", None) is not None and model.novelty.steps is not None:
-        z = model.engine.encode(x.reshape(-1, *x.shape[2:])).reshape(len(starts), given, -1)
+        z = model.encode(x)
         slowed = float((novelty.training_pace(z, model.novelty) < 0.95).mean())
     return out, slowed
 
