@@ -164,10 +164,10 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
             if args.rescore_prediction:
                 done = rescore_prediction(done, run, record, specs, args)
             return rescore_completion(done, run, record, specs, args) if args.rescore_completion else done
-    data = load_training_data(specs)
     config = TrainConfig(iterations=args.iterations, seed=args.seed, holdout_at=holdout_at, holdout=holdout,
                          eval_every=0,
                          checkpoint_every=min(500, args.iterations), keep=2, **recipe_changes(args.change))
+    data = load_training_data(specs, consistency=config.consistency, placement=config.placement)
     t0 = time.perf_counter()
     resume = bool(ckpt.list_checkpoints(run))  # a run stopped before its first checkpoint starts over
     train(data, run, config, device=args.device, resume=resume, force=not resume, progress=not args.quiet)

@@ -207,6 +207,50 @@ def test_a_part_whose_lowest_vertex_is_an_outlier_keeps_its_logs_off_the_2pi_she
     assert np.array_equal(lowest[:40], logs[:40])
 
 
+def test_the_smallest_turn_walk_keeps_a_band_off_the_2pi_shell_past_ill_conditioned_vertices():
+    """A band turning by 0.05 rad with two ill-conditioned vertices inside (2.7 rad, and 1.6 rad
+    about an axis 120 degrees away: what a thin strap's inverted gradients give): the breadth-first
+    walk passes through them and puts the rest of their row on the 2 pi shell (and the unrotated
+    end at exactly 2 pi); the smallest-turn walk reaches them last, so every other log stays small
+    and unrotated vertices are at 0. Both are logs of the same rotations."""
+    from meshseq.acap.rotations import spatial_bfs, smallest_turn_tree
+
+    topo = Topology.from_faces(_strip(20, 0), 40)
+    axis = np.tile([0.0, 0.0, 1.0], (1, 40, 1))
+    theta = np.full((1, 40), 0.05)
+    theta[0, 10] = 2.7
+    axis[0, 12], theta[0, 12] = [np.sin(2.1), 0.0, np.cos(2.1)], 1.6
+    theta[0, 30:] = 0.0
+    bfs = spatial_bfs(axis, theta, topo)[0]
+    mst = spatial_bfs(axis, theta, topo, tree="mst")[0]
+    others = np.setdiff1d(np.arange(40), [10, 12])
+    assert (np.linalg.norm(bfs[others], axis=-1) > np.pi).sum() >= 8  # the check below can fail
+    assert np.allclose(np.linalg.norm(bfs[[30, 32]], axis=-1), 2 * np.pi)
+    assert (np.linalg.norm(mst[others], axis=-1) <= 0.05 + 1e-12).all()
+    assert (mst[30:] == 0.0).all()
+    parent, _ = smallest_turn_tree(axis[0], theta[0], topo, topo.component_roots)
+    assert not np.isin(parent, [10, 12]).any()  # the outliers are leaves
+    angle = np.linalg.norm(mst, axis=-1)
+    back = np.where(angle[:, None] > 0, mst / np.maximum(angle, 1e-300)[:, None], axis[0])
+    turned = np.mod(angle, 2 * np.pi)
+    flip = turned > np.pi  # (2 pi - theta) about -w is the same rotation
+    assert np.allclose(np.where(flip, 2 * np.pi - turned, turned), theta[0], atol=1e-12)
+    assert np.allclose(np.where(flip[:, None], -back, back)[theta[0] > 0], axis[0][theta[0] > 0], atol=1e-12)
+
+
+def test_temporal_mst_features_are_the_temporal_ones_where_no_vertex_is_an_outlier():
+    """On a smooth rotation field the two walks give the same logs, bit for bit (a twisting limb
+    against a reference that is not its first frame)."""
+    from meshseq.acap import extract
+    from meshseq.data.synthetic import twisting_limb
+
+    seq = twisting_limb(frames=30)
+    ref = seq.vertices[0]
+    kwargs = dict(reference=ref, threads=1)
+    assert np.array_equal(extract(seq.vertices[10:], seq.faces, consistency="temporal", **kwargs),
+                          extract(seq.vertices[10:], seq.faces, consistency="temporal-mst", **kwargs))
+
+
 def test_placement_jitter_shifts_each_part_by_one_offset_per_window_and_is_taken_back():
     import torch
 

@@ -119,7 +119,9 @@ def extract(
         reference: ``(V, 3)`` rest shape; default the first frame (whose features are then the
             identity feature).
         consistency: ``temporal`` (default: rotation logs continuous in time, with the fewest
-            spurious 2 pi jumps possible, see :mod:`meshseq.acap.rotations`), ``spatial`` (the
+            spurious 2 pi jumps possible, see :mod:`meshseq.acap.rotations`), ``temporal-mst``
+            (the same, the first frame made consistent along its smallest rotation differences,
+            ``rotations.smallest_turn_tree``), ``spatial`` (the
             reference code's per-frame BFS) or ``greedy`` (each frame nearest the previous; the
             earlier temporal pass, kept for comparison).
         normal_row: include the normal term in the gradient fit (method.md 1.2).

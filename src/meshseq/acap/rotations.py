@@ -20,17 +20,24 @@ all frames together (dynamic programming) for the fewest spurious jumps, then th
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse import csgraph
 
-from meshseq.mesh import Topology, depth_levels
+from meshseq.mesh import Topology, depth_levels, tree_depths
 
 #: Rotation angles at or below this count as "no rotation" (method.md 1.4).
 NO_ROTATION = 1e-6
 TWO_PI = 2.0 * np.pi
 
 #: ``temporal``: BFS on the first frame, then the branches over time with the fewest spurious jumps
-#: (greedy nearest-previous, repaired by dynamic programming where it jumps); ``spatial``: BFS per
-#: frame; ``greedy``: the earlier temporal pass (each frame nearest the previous, no repair).
-CONSISTENCY_MODES = ("temporal", "spatial", "greedy")
+#: (greedy nearest-previous, repaired by dynamic programming where it jumps); ``temporal-mst``: the
+#: same over time, the first frame walked along its smallest rotation differences
+#: (:func:`smallest_turn_tree`) with unrotated vertices at log 0; ``spatial``: BFS per frame;
+#: ``greedy``: the earlier temporal pass (each frame nearest the previous, no repair).
+CONSISTENCY_MODES = ("temporal", "temporal-mst", "spatial", "greedy")
+#: The trees a spatial pass walks: ``bfs`` (the reference code's breadth-first tree over the ring
+#: graph) or ``mst`` (:func:`smallest_turn_tree`).
+TREES = ("bfs", "mst")
 
 #: A step of a vertex's log between consecutive frames longer than this is a jump ...
 JUMP_STEP = np.pi
@@ -105,21 +112,56 @@ def part_medians(values: np.ndarray, labels: np.ndarray, n_parts: int) -> np.nda
     return 0.5 * (v[start + (counts - 1) // 2] + v[start + counts // 2])
 
 
-def spatial_bfs(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndarray:
+def smallest_turn_tree(axis: np.ndarray, theta: np.ndarray, topology: Topology,
+                       roots: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The walk of one frame's rotations ``axis (V, 3)``, ``theta (V,)`` from ``roots (C,)`` along
+    the minimum spanning tree of the ring graph weighted by each edge's rotation difference (the
+    angle of ``R_i^T R_j``, independent of the logs' branches).
+
+    A vertex whose rotation is an outlier (an ill-conditioned vertex of a thin band, turned by radians
+    where its neighbours turn by hundredths) differs from every neighbour by much, so the tree
+    reaches it last, as a leaf, and no other vertex takes its branch from it; the breadth-first
+    tree may walk through it and put everything beyond it on the 2 pi shell.
+
+    Returns ``(parent (V,), levels)``: parent -1 at the roots; ``levels[d]`` the vertices d edges
+    from their root along the tree.
+    """
+    e = topology.edges
+    q = _unit_quaternions(axis, theta)
+    turn = 2.0 * np.arccos(np.clip(np.abs(np.einsum("ec,ec->e", q[e[:, 0]], q[e[:, 1]])), 0.0, 1.0))
+    n = topology.n_vertices
+    # csgraph drops explicit zeros: an edge between two equal rotations still weighs a little
+    graph = sp.csr_matrix((turn + 1e-12, (e[:, 0], e[:, 1])), shape=(n, n))
+    tree = csgraph.minimum_spanning_tree(graph)
+    tree = tree + tree.T
+    parent = np.full(n, -1, dtype=np.int64)
+    for root in roots:
+        order, pred = csgraph.breadth_first_order(tree, int(root), directed=False)
+        parent[order[1:]] = pred[order[1:]]
+    return parent, depth_levels(tree_depths(parent))
+
+
+def spatial_bfs(axis: np.ndarray, theta: np.ndarray, topology: Topology, tree: str = "bfs") -> np.ndarray:
     """Consistent rotation logs by the reference code's greedy BFS (method.md 1.5).
 
     Applied level by level over the BFS tree (vectorised over frames and the vertices of a level).
 
     Args:
         axis: ``(T, V, 3)`` unit axes; theta: ``(T, V)`` angles in [0, pi].
+        tree: ``bfs`` (the reference code's), or ``mst``: walk along :func:`smallest_turn_tree` of
+            the first frame, and give unrotated vertices log 0 (not their parent's 2 pi shell).
     Returns:
         ``(T, V, 3)`` rotation vectors ``Theta w`` with ``Theta = theta + 2 pi k``.
     """
     w = np.ascontiguousarray(axis.transpose(1, 0, 2)).copy()  # (V, T, 3) vertex-major
     th = np.ascontiguousarray(theta.T).copy()  # (V, T)
     k = np.zeros(th.shape, dtype=np.int64)
+    if tree not in TREES:
+        raise ValueError(f"unknown tree {tree!r}; expected one of {TREES}")
     roots = typical_roots(theta[0], topology)
-    if np.array_equal(roots, topology.component_roots):
+    if tree == "mst":
+        parent, levels = smallest_turn_tree(axis[0], theta[0], topology, roots)
+    elif np.array_equal(roots, topology.component_roots):
         parent, levels = topology.bfs[1], topology.bfs_levels
     else:
         _, parent, depth = topology.bfs_trees(roots)
@@ -135,12 +177,12 @@ def spatial_bfs(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.n
         kj = ki + np.where(jump, np.where(ti < np.pi, -1, 1), 0)
         w[level] = np.where(small[..., None], wi, wj)
         th[level] = tj
-        k[level] = kj
+        k[level] = np.where(small, 0, kj) if tree == "mst" else kj
     big_theta = th + TWO_PI * k
     return (w * big_theta[..., None]).transpose(1, 0, 2)
 
 
-def greedy_temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndarray:
+def greedy_temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology, tree: str = "bfs") -> np.ndarray:
     """Spatial BFS on the first frame, then each frame's representative nearest the previous frame.
 
     Every representative ``(theta + 2 pi m) w`` of a rotation lies on the line along its axis (the
@@ -150,11 +192,11 @@ def greedy_temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> 
     keeps the previous axis (its representatives are 0 and the 2 pi k shells along it).
 
     Args:
-        axis: ``(T, V, 3)``; theta: ``(T, V)``.
+        axis: ``(T, V, 3)``; theta: ``(T, V)``; tree: the first frame's walk (``spatial_bfs``).
     Returns:
         ``(T, V, 3)`` rotation vectors.
     """
-    first = spatial_bfs(axis[:1], theta[:1], topology)[0]
+    first = spatial_bfs(axis[:1], theta[:1], topology, tree)[0]
     w, base = _lines(axis, theta, first)
     cos_turn = np.einsum("tvc,tvc->tv", w[:-1], w[1:])
     c = np.empty(base.shape)
@@ -183,7 +225,7 @@ def _lines(axis: np.ndarray, theta: np.ndarray, first: np.ndarray) -> tuple[np.n
     return w, base
 
 
-def temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndarray:
+def temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology, tree: str = "bfs") -> np.ndarray:
     """Rotation logs continuous in time: the fewest spurious jumps, then the smallest steps.
 
     The greedy pass (:func:`greedy_temporal`) is kept on every vertex whose log never steps by more
@@ -191,11 +233,11 @@ def temporal(axis: np.ndarray, theta: np.ndarray, topology: Topology) -> np.ndar
     :func:`fewest_jumps`. The first frame keeps its spatial BFS logs.
 
     Args:
-        axis: ``(T, V, 3)``; theta: ``(T, V)``.
+        axis: ``(T, V, 3)``; theta: ``(T, V)``; tree: the first frame's walk (``spatial_bfs``).
     Returns:
         ``(T, V, 3)`` rotation vectors.
     """
-    out = greedy_temporal(axis, theta, topology)
+    out = greedy_temporal(axis, theta, topology, tree)
     if len(out) < 2:
         return out
     steps = np.einsum("tvc,tvc->tv", *(np.diff(out, axis=0),) * 2)
@@ -276,6 +318,8 @@ def consistent_logs(axis: np.ndarray, theta: np.ndarray, topology: Topology, mod
     """Rotation vectors ``(T, V, 3)`` made consistent by ``mode`` (one of CONSISTENCY_MODES)."""
     if mode == "temporal":
         return temporal(axis, theta, topology)
+    if mode == "temporal-mst":
+        return temporal(axis, theta, topology, tree="mst")
     if mode == "spatial":
         return spatial_bfs(axis, theta, topology)
     if mode == "greedy":

@@ -11,7 +11,7 @@ import time
 from meshseq.errors import MeshseqError
 
 #: meshseq.acap.CONSISTENCY_MODES, kept here so that --help does not import torch (a test checks they agree)
-CONSISTENCY_MODES = ("temporal", "spatial", "greedy")
+CONSISTENCY_MODES = ("temporal", "temporal-mst", "spatial", "greedy")
 
 
 def register(sub) -> None:
@@ -57,7 +57,8 @@ def register(sub) -> None:
 def _feature_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--consistency", choices=CONSISTENCY_MODES, default="temporal",
                    help="rotation consistency: 'temporal' (default; logs continuous in time with the "
-                   "fewest spurious 2 pi jumps), 'spatial' (per-frame BFS of the reference code) or "
+                   "fewest spurious 2 pi jumps), 'temporal-mst' (the same, the first frame walked along its "
+                   "smallest rotation differences), 'spatial' (per-frame BFS of the reference code) or "
                    "'greedy' (each frame nearest the previous, the earlier temporal pass)")
     p.add_argument("--exact", action="store_true",
                    help="exact encoding: minimum-norm correction of the gradients so that "

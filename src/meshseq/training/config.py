@@ -89,7 +89,7 @@ class TrainConfig:
         (holds, slow-downs to a stop, speed-ups; ``WindowSampler.sample_at_tempos``; 0 = off).
         scaling: feature scaling to [-0.95, 0.95] fitted on the training frames
         (``two-group``, ``per-channel``, ``robust``). consistency: rotation consistency of the ACAP
-        features (``temporal``, ``spatial``). window_fit: ``batch`` shortens the window until the
+        features (``acap.CONSISTENCY_MODES``: ``temporal``, ``temporal-mst``, ...). window_fit: ``batch`` shortens the window until the
         training frames hold a batch of different windows (never below 16 frames while that
         fits) [``none``: the window as given]. placement_jitter J (0.1 [0]): on a mesh of several
         parts, shift each part's placement channels in every training window by a random offset
@@ -195,7 +195,10 @@ class TrainConfig:
         if not (is_finite_number(self.tempo_augment) and 0 <= self.tempo_augment <= 1):
             raise MeshseqError(f"tempo_augment {self.tempo_augment!r}: expected a share in [0, 1] (0 = off)")
         from meshseq.acap.parts import PLACEMENT_MODES
+        from meshseq.acap.rotations import CONSISTENCY_MODES
 
+        if self.consistency not in CONSISTENCY_MODES:
+            raise MeshseqError(f"consistency {self.consistency!r}: expected one of {', '.join(CONSISTENCY_MODES)}")
         if self.placement not in PLACEMENT_MODES:
             raise MeshseqError(f"placement {self.placement!r}: expected one of {', '.join(PLACEMENT_MODES)}")
         if not (is_finite_number(self.placement_jitter) and self.placement_jitter >= 0):

@@ -34,10 +34,10 @@ class TrainingData:
         return int(self.reference.shape[0])
 
 
-def load_training_data(specs: list[str], consistency: str = "temporal", placement: str | None = None) -> TrainingData:
+def load_training_data(specs: list[str], consistency: str | None = None, placement: str | None = None) -> TrainingData:
     """Load sequences (``meshseq.io.load_sequence``) and extract features against one reference
-    (``placement``: what a multi-part mesh's placement channels measure from; default
-    ``TrainConfig.placement``'s).
+    (``consistency``: the rotation consistency, default ``TrainConfig.consistency``'s; ``placement``:
+    what a multi-part mesh's placement channels measure from, default ``TrainConfig.placement``'s).
 
     MeshseqError if the data sets do not share one connectivity.
     """
@@ -63,6 +63,7 @@ def load_training_data(specs: list[str], consistency: str = "temporal", placemen
 
     check_reference_parts(reference, Topology.from_faces(first.faces, first.n_vertices), f"{specs[0]} frame 0")
     placement = TrainConfig.placement if placement is None else placement
+    consistency = TrainConfig.consistency if consistency is None else consistency
     feats = [acap.extract(s.vertices, s.faces, reference=reference, consistency=consistency, placement_mode=placement)
              for s in seqs]
     return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference, consistency,
