@@ -1,6 +1,6 @@
 """What prediction's departures from the paper's roll-out do on chosen sequences: the default
-against ``--pace model`` (no pace factor), ``--carry 0`` (no carried velocity) and both (the
-paper's roll-out) (method.md, "What the generalisation benchmark leaves unmet").
+against ``--pace model`` (no pace factor), ``--carry 0`` (no carried velocity), both, ``--guard off``
+(no novelty guard) and all three (the paper's roll-out) (method.md, "What the generalisation benchmark leaves unmet").
 
     python benchmarks/roll_out_rules.py RUN SPEC ... [--given 3] [--every 1]
 
@@ -21,7 +21,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from novelty_guard import H as HORIZON, vertex_errors  # noqa: E402  (a sibling script: h5 / h10 / h15)
 
 RULES = {"default": {}, "pace model": {"pace": "model"}, "carry 0": {"carry": 0.0},
-         "pace model, carry 0": {"pace": "model", "carry": 0.0}}
+         "pace model, carry 0": {"pace": "model", "carry": 0.0}, "guard off": {"guard": False},
+         "guard off, pace model, carry 0": {"guard": False, "pace": "model", "carry": 0.0}}
 
 
 def rule_ratios(model, verts: np.ndarray, given: int, every: int) -> tuple[dict, float]:

@@ -1,0 +1,85 @@
+"""Where a multi-part mesh's prediction error lies: on its largest part (the body) or on the rest
+(eyes, straps, props) (method.md, "What the generalisation benchmark leaves unmet").
+
+    python benchmarks/part_errors.py RUN SPEC ... [--given 3] [--every 4]
+
+For each sequence: ours (guarded, the default, and ``--guard off``) and zero velocity, the mean
+centroid-aligned error x 1e-4 at h5 / h10 / h15 over the vertices of the largest part and over
+the others (the whole mesh aligned once, as the benchmark scores it), starts every ``--every``
+frames over the whole sequence. A single-part mesh prints the body alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from novelty_guard import CELLS, H as HORIZON  # noqa: E402  (a sibling script: h5 / h10 / h15)
+
+
+def part_errors(pred: np.ndarray, truth: np.ndarray, masks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``{part: (3,)}``: mean centroid-aligned error at h5 / h10 / h15 over each ``(V,)`` bool mask's
+    vertices of predictions ``pred`` ``(B, H, V, 3)`` against ``truth`` (same shape)."""
+    from meshseq.align import per_vertex_error
+
+    err = per_vertex_error(pred.reshape(-1, *pred.shape[2:]), truth.reshape(-1, *truth.shape[2:]))
+    err = err.reshape(*truth.shape[:3])[:, CELLS]  # (B, 3, V)
+    return {name: err[..., m].mean(axis=(0, 2)) for name, m in masks.items() if m.any()}
+
+
+def part_masks(faces: np.ndarray, n_vertices: int) -> dict[str, np.ndarray]:
+    """``{"body": (V,), "other parts": (V,)}``: the largest connected part's vertices and the rest."""
+    from meshseq.acap.parts import body_part
+    from meshseq.mesh import Topology
+
+    topology = Topology.from_faces(faces, n_vertices)
+    body = topology.component_labels == body_part(topology)
+    return {"body": body, "other parts": ~body}
+
+
+def sequence_errors(model, verts: np.ndarray, faces: np.ndarray, given: int, every: int) -> dict:
+    """``{method: {part: (3,)}}`` for one sequence ``(T, V, 3)``: ours guarded, unguarded, zero velocity."""
+    from meshseq.evaluate import prediction_starts
+    from meshseq.synthesize import predict
+
+    starts = prediction_starts(0, len(verts), given, HORIZON, every)
+    feats = model.features(verts)
+    steps = np.arange(1, HORIZON + 1)
+    truth = np.stack([verts[s + given - 1 + steps] for s in starts])  # (B, H, V, 3)
+    masks = part_masks(faces, verts.shape[1])
+    x = np.stack([feats[s:s + given] for s in starts])
+    out = {}
+    for name, guard in (("ours", True), ("ours, guard off", False)):
+        f = predict(model, x, HORIZON, guard=guard)
+        out[name] = part_errors(model.vertices(f.reshape(-1, *f.shape[2:])).reshape(truth.shape), truth, masks)
+    zero = np.repeat(np.stack([verts[s + given - 1] for s in starts])[:, None], HORIZON, 1)
+    out["zero velocity"] = part_errors(zero, truth, masks)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run", help="a trained run")
+    p.add_argument("specs", nargs="+", metavar="SPEC", help="sequences (FILE or FILE:NAME)")
+    p.add_argument("--given", type=int, default=3)
+    p.add_argument("--every", type=int, default=4)
+    args = p.parse_args(argv)
+    import meshseq
+    from meshseq.io import load_sequence
+
+    model = meshseq.load(args.run)
+    for spec in args.specs:
+        seq = load_sequence(spec)
+        res = sequence_errors(model, seq.vertices.astype(np.float64), seq.faces, args.given, args.every)
+        print(f"{spec}: u{args.given}, x 1e-4 at h5 / h10 / h15")
+        for method, parts in res.items():
+            print(f"  {method:16s} " + "   ".join(f"{part} " + " / ".join(f"{v * 1e4:.0f}" for v in e)
+                                             for part, e in parts.items()), flush=True)
+
+
+if __name__ == "__main__":
+    main()
