@@ -510,6 +510,22 @@ def test_resume_never_starts_over(tmp_path, limb, capsys):
     assert "choose one" in _one_error_line(capsys)
 
 
+@pytest.mark.parametrize("consistency", acap.CONSISTENCY_MODES)
+def test_a_run_of_every_consistency_loads_and_extracts_features_with_it(tmp_path, limb, consistency):
+    from meshseq.train import TrainingData
+
+    seq, _ = limb
+    ref = seq.vertices[3]  # not the first frame: the modes' first-frame walks could differ
+    feats = acap.extract(seq.vertices, seq.faces, reference=ref, consistency=consistency)
+    data = TrainingData([seq.name], [seq.source], [feats], seq.faces, ref, consistency)
+    run = tmp_path / "run"
+    train(data, run, TrainConfig(iterations=2, window=6, batch=2, eval_every=0, consistency=consistency), SMALL,
+          device="cpu", progress=False, log=None)
+    model = meshseq.load(run)
+    assert model.meta["features"]["consistency"] == consistency
+    np.testing.assert_array_equal(model.features(seq.vertices), model.scaling.apply(feats).astype(np.float32))
+
+
 def test_damaged_checkpoint_does_not_count_toward_keep(tmp_path, limb):
     _, data = limb
     cfg = dict(window=6, batch=2, eval_every=0, checkpoint_every=3, keep=2)

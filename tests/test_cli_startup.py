@@ -54,9 +54,10 @@ def test_console_script_help_imports_no_torch():
 
 
 def test_choices_listed_without_the_library_match_it():
+    from meshseq import checkpoint_schema
     from meshseq.acap import CONSISTENCY_MODES
     from meshseq.cli import acap_cmds, bodies_cmds
     from meshseq.data.motions import MOTIONS
 
-    assert acap_cmds.CONSISTENCY_MODES == CONSISTENCY_MODES
+    assert acap_cmds.CONSISTENCY_MODES == CONSISTENCY_MODES == checkpoint_schema.CONSISTENCY_MODES
     assert bodies_cmds.MOTIONS == MOTIONS

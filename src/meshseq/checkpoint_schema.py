@@ -26,6 +26,10 @@ import numpy as np
 
 from meshseq.errors import MeshseqError
 
+#: acap.CONSISTENCY_MODES, kept here so that reading a checkpoint's schema imports no mesh code (a
+#: test checks they agree)
+CONSISTENCY_MODES = ("temporal", "temporal-mst", "spatial", "greedy")
+
 #: what a checkpoint's model.json says it is (``format``) and the newest version this meshseq reads
 FORMAT = "meshseq-bdlstm-checkpoint"
 FORMAT_VERSION = 1
@@ -197,8 +201,9 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
     for i, d in enumerate(meta["datasets"]):
         _check_split(d, file, f"datasets[{i}]")
     consistency = meta.get("features", {}).get("consistency", "temporal")
-    if consistency not in ("temporal", "spatial"):
-        raise CheckpointError(file, "features.consistency", f"{consistency!r}: expected temporal or spatial")
+    if consistency not in CONSISTENCY_MODES:
+        raise CheckpointError(file, "features.consistency",
+                              f"{consistency!r}: expected one of {', '.join(CONSISTENCY_MODES)}")
     nov = meta.get("novelty")
     if nov is not None and not (nov["step"] > 0 and math.isfinite(nov["step"]) and nov["frames"] >= 1):
         raise CheckpointError(file, "novelty", f"step {nov['step']} and frames {nov['frames']}: expected a positive "
