@@ -490,11 +490,11 @@ def test_resume_never_starts_over(tmp_path, limb, capsys):
     meta = json.loads((ckpt.latest_checkpoint(run) / "model.json").read_text())
     assert meta["iteration"] == 6 and meta["train"]["lr"] == 0.002 and meta["train"]["window"] == 6
     assert meta["train"]["seed"] == 5 and meta["train"]["iterations"] == 6
-    assert meta["train"]["consistency"] == meta["features"]["consistency"] == "temporal"
+    assert meta["train"]["consistency"] == meta["features"]["consistency"] == "temporal-mst"
     from meshseq.train import load_training_data
 
     spatial = load_training_data([str(tmp_path / "limb.npz")], consistency="spatial")
-    with pytest.raises(MeshseqError, match="trained on temporal features; the data were extracted with spatial"):
+    with pytest.raises(MeshseqError, match="trained on temporal-mst features; the data were extracted with spatial"):
         train(spatial, run, TrainConfig(iterations=8), device="cpu", resume=True, progress=False, log=None)
     rows = (run / "metrics.csv").read_text()
     assert rows.startswith(metrics) and len(rows.splitlines()) == 7

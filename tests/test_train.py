@@ -496,7 +496,7 @@ def test_config_file_sits_between_the_recipe_and_the_command_line(tmp_path):
     ("input_norm = 1\n", "input_norm: expected true or false, got 1"),
     ("adam_beta2 = 1.5\n", "adam_beta2: 1.5: expected a number in [0, 1)"),
     ('fc_lr = "fast"\n', "fc_lr: 'fast': expected one of fan-in, encoder, none"),
-    ('consistency = "bfs"\n', "consistency: 'bfs': expected one of temporal, temporal-mst, spatial, greedy"),
+    ('consistency = "bfs"\n', "consistency: 'bfs': expected one of temporal-mst, temporal, spatial, greedy"),
     ("[model]\nlayers = 2\n", "model.layers: not a model option"),
     ("[model]\nlatent = 0\n", "model.latent: 0: expected an integer of at least 1"),
     ("lr = \n", "not valid TOML"),

@@ -28,7 +28,7 @@ from meshseq.errors import MeshseqError
 
 #: acap.CONSISTENCY_MODES, kept here so that reading a checkpoint's schema imports no mesh code (a
 #: test checks they agree)
-CONSISTENCY_MODES = ("temporal", "temporal-mst", "spatial", "greedy")
+CONSISTENCY_MODES = ("temporal-mst", "temporal", "spatial", "greedy")
 
 #: what a checkpoint's model.json says it is (``format``) and the newest version this meshseq reads
 FORMAT = "meshseq-bdlstm-checkpoint"

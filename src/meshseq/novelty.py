@@ -39,9 +39,9 @@ GUARD_START = 2.0
 #: novelty from which prediction is the fallback alone
 GUARD_END = 4.0
 #: cosine from which a given step's direction counts as one training shows at that pose
-DIRECTION_END = 0.9
+DIRECTION_END = 0.95
 #: cosine up to which it counts as a motion training never shows there (prediction: the fallback)
-DIRECTION_START = 0.7
+DIRECTION_START = 0.8
 #: a latent step below this many typical steps is a pose held (float rounding, no direction)
 HELD = 1e-3
 #: training frames nearest the given pose whose steps the given step is compared with

@@ -15,11 +15,12 @@ from meshseq.acap.features import (
 )
 from meshseq.acap.gradients import GradientOperator
 from meshseq.acap.reconstruct import ExactEncoder, Reconstructor
-from meshseq.acap.rotations import CONSISTENCY_MODES
+from meshseq.acap.rotations import CONSISTENCY_MODES, DEFAULT_CONSISTENCY
 from meshseq.acap.scaling import Scaling
 
 __all__ = [
     "CONSISTENCY_MODES",
+    "DEFAULT_CONSISTENCY",
     "ExactEncoder",
     "FEATURE_DIM",
     "GradientOperator",

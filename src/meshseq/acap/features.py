@@ -16,7 +16,7 @@ import numpy as np
 
 from meshseq.acap.gradients import GradientOperator, polar_soa
 from meshseq.acap.parts import placement_channels
-from meshseq.acap.rotations import CONSISTENCY_MODES, axis_angle, consistent_logs
+from meshseq.acap.rotations import CONSISTENCY_MODES, DEFAULT_CONSISTENCY, axis_angle, consistent_logs
 from meshseq.mesh import Topology
 
 FEATURE_DIM = 9
@@ -69,7 +69,7 @@ def map_frame_chunks(work, n_frames: int, threads: int | None = None) -> None:
 
 
 def gradients_to_features(
-    gradients: np.ndarray, topology: Topology, consistency: str = "temporal", threads: int | None = None
+    gradients: np.ndarray, topology: Topology, consistency: str = DEFAULT_CONSISTENCY, threads: int | None = None
 ) -> np.ndarray:
     """ACAP features ``(T, V, 9)`` of deformation gradients ``(T, V, 3, 3)``.
 
@@ -106,7 +106,7 @@ def extract(
     vertices: np.ndarray,
     faces: np.ndarray,
     reference: np.ndarray | None = None,
-    consistency: str = "temporal",
+    consistency: str = DEFAULT_CONSISTENCY,
     normal_row: bool = True,
     exact: bool = False,
     threads: int | None = None,
@@ -118,12 +118,12 @@ def extract(
     Args:
         reference: ``(V, 3)`` rest shape; default the first frame (whose features are then the
             identity feature).
-        consistency: ``temporal`` (default: rotation logs continuous in time, with the fewest
-            spurious 2 pi jumps possible, see :mod:`meshseq.acap.rotations`), ``temporal-mst``
-            (the same, the first frame made consistent along its smallest rotation differences,
-            ``rotations.smallest_turn_tree``), ``spatial`` (the
-            reference code's per-frame BFS) or ``greedy`` (each frame nearest the previous; the
-            earlier temporal pass, kept for comparison).
+        consistency: ``temporal-mst`` (default: rotation logs continuous in time, with the fewest
+            spurious 2 pi jumps possible, the first frame made consistent along its smallest
+            rotation differences; see :mod:`meshseq.acap.rotations`), ``temporal`` (the same from
+            the first frame's breadth-first walk), ``spatial`` (the reference code's per-frame BFS)
+            or ``greedy`` (each frame nearest the previous; the earlier temporal pass, kept for
+            comparison).
         normal_row: include the normal term in the gradient fit (method.md 1.2).
         exact: correct the least-squares gradients by the minimum-norm change that makes the
             reconstruction return the input (method.md 2.5), a chunk of frames at a time.

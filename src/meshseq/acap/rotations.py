@@ -29,12 +29,15 @@ from meshseq.mesh import Topology, depth_levels, tree_depths
 NO_ROTATION = 1e-6
 TWO_PI = 2.0 * np.pi
 
-#: ``temporal``: BFS on the first frame, then the branches over time with the fewest spurious jumps
-#: (greedy nearest-previous, repaired by dynamic programming where it jumps); ``temporal-mst``: the
-#: same over time, the first frame walked along its smallest rotation differences
-#: (:func:`smallest_turn_tree`) with unrotated vertices at log 0; ``spatial``: BFS per frame;
-#: ``greedy``: the earlier temporal pass (each frame nearest the previous, no repair).
-CONSISTENCY_MODES = ("temporal", "temporal-mst", "spatial", "greedy")
+#: ``temporal-mst`` (the default): the branches over time with the fewest spurious jumps (greedy
+#: nearest-previous, repaired by dynamic programming where it jumps) from the first frame walked along
+#: its smallest rotation differences (:func:`smallest_turn_tree`), unrotated vertices at log 0;
+#: ``temporal``: the same over time from the first frame's breadth-first walk (the default before);
+#: ``spatial``: BFS per frame; ``greedy``: the earlier temporal pass (each frame nearest the
+#: previous, no repair).
+CONSISTENCY_MODES = ("temporal-mst", "temporal", "spatial", "greedy")
+#: what features are extracted with unless told otherwise
+DEFAULT_CONSISTENCY = CONSISTENCY_MODES[0]
 #: The trees a spatial pass walks: ``bfs`` (the reference code's breadth-first tree over the ring
 #: graph) or ``mst`` (:func:`smallest_turn_tree`).
 TREES = ("bfs", "mst")
@@ -314,7 +317,7 @@ def fewest_jumps(axis: np.ndarray, theta: np.ndarray, first: np.ndarray, reach: 
     return out
 
 
-def consistent_logs(axis: np.ndarray, theta: np.ndarray, topology: Topology, mode: str = "temporal") -> np.ndarray:
+def consistent_logs(axis: np.ndarray, theta: np.ndarray, topology: Topology, mode: str = DEFAULT_CONSISTENCY) -> np.ndarray:
     """Rotation vectors ``(T, V, 3)`` made consistent by ``mode`` (one of CONSISTENCY_MODES)."""
     if mode == "temporal":
         return temporal(axis, theta, topology)

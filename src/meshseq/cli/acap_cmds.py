@@ -11,7 +11,7 @@ import time
 from meshseq.errors import MeshseqError
 
 #: meshseq.acap.CONSISTENCY_MODES, kept here so that --help does not import torch (a test checks they agree)
-CONSISTENCY_MODES = ("temporal", "temporal-mst", "spatial", "greedy")
+CONSISTENCY_MODES = ("temporal-mst", "temporal", "spatial", "greedy")  # the first is the default
 
 
 def register(sub) -> None:
@@ -55,11 +55,11 @@ def register(sub) -> None:
 
 
 def _feature_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--consistency", choices=CONSISTENCY_MODES, default="temporal",
-                   help="rotation consistency: 'temporal' (default; logs continuous in time with the "
-                   "fewest spurious 2 pi jumps), 'temporal-mst' (the same, the first frame walked along its "
-                   "smallest rotation differences), 'spatial' (per-frame BFS of the reference code) or "
-                   "'greedy' (each frame nearest the previous, the earlier temporal pass)")
+    p.add_argument("--consistency", choices=CONSISTENCY_MODES, default=CONSISTENCY_MODES[0],
+                   help="rotation consistency: 'temporal-mst' (default; logs continuous in time with the "
+                   "fewest spurious 2 pi jumps, the first frame walked along its smallest rotation "
+                   "differences), 'temporal' (the same from a breadth-first walk), 'spatial' (per-frame BFS "
+                   "of the reference code) or 'greedy' (each frame nearest the previous)")
     p.add_argument("--exact", action="store_true",
                    help="exact encoding: minimum-norm correction of the gradients so that "
                    "reconstruction returns the input (method.md 2.5)")
@@ -152,7 +152,7 @@ def cmd_info(args) -> int:
             from meshseq.acap import extract
             from meshseq.acap.diagnostics import feature_jumps
 
-            info["jump_check_consistency"] = "temporal"
+            info["jump_check_consistency"] = CONSISTENCY_MODES[0]
             info.update(feature_jumps(extract(seq.vertices, seq.faces)))
         infos.append(info)
     if args.json and len(infos) > 1:
@@ -211,7 +211,7 @@ def cmd_features(args) -> int:
     return 0
 
 
-def roundtrip_report(seq, *, consistency="temporal", exact=False, reference_frame=0,
+def roundtrip_report(seq, *, consistency=CONSISTENCY_MODES[0], exact=False, reference_frame=0,
                      normal_row=True, rigid=False) -> dict:
     """Extract, reconstruct, compare; the ``roundtrip`` command's numbers (see its help)."""
     import numpy as np
