@@ -52,11 +52,24 @@ def scored_pace() -> str:
 
 
 def record_label(rec: dict) -> str:
-    """``"bodies, 2000 it"``, with the seed where not 0 and the pace and trust rules where not today's."""
+    """``"bodies, 2000 it"``, with the seed where not 0, the pace and trust rules where not today's,
+    and the rotation consistency where not today's default and it changes the features."""
     seed = rec["train"].get("seed", 0)
     pace, trust = rec.get("pace", PACE_UNNAMED), rec.get("trust", TRUST_UNNAMED)
     return (f"{rec['set']}, {rec['iteration']} it{f', seed {seed}' if seed else ''}"
-            f"{f', pace {pace}' if pace != scored_pace() else ''}{f', trust {trust}' if trust != TRUST else ''}")
+            f"{f', pace {pace}' if pace != scored_pace() else ''}{f', trust {trust}' if trust != TRUST else ''}"
+            f"{f', {logs} logs' if (logs := record_consistency(rec)) else ''}")
+
+
+def record_consistency(rec: dict) -> str | None:
+    """The rotation consistency a record's run was trained with, where it is not today's default
+    and gives other features: on a single capture (its first frame the reference, every
+    first-frame rotation the identity) every temporal walk gives the same features."""
+    from meshseq.acap import DEFAULT_CONSISTENCY
+
+    consistency = rec["train"].get("consistency", "temporal")
+    single_capture = rec["train"]["holdout"] != 0
+    return None if consistency == DEFAULT_CONSISTENCY or single_capture else consistency
 
 
 def body_specs(path: str, subject: str, motion: str) -> tuple[list[str], list[str]]:
