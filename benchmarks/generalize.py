@@ -180,9 +180,13 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     config = TrainConfig(iterations=args.iterations, seed=args.seed, holdout_at=holdout_at, holdout=holdout,
                          eval_every=0,
                          checkpoint_every=min(500, args.iterations), keep=2, **recipe_changes(args.change))
-    data = load_training_data(specs, consistency=config.consistency, placement=config.placement)
-    t0 = time.perf_counter()
     resume = bool(ckpt.list_checkpoints(run))  # a run stopped before its first checkpoint starts over
+    consistency, placement = config.consistency, config.placement
+    if resume:  # features as the run was trained on (its stored options)
+        stored = ckpt.load_latest(run).meta["train"]
+        consistency, placement = stored.get("consistency", "temporal"), stored.get("placement", "centroid")
+    data = load_training_data(specs, consistency=consistency, placement=placement)
+    t0 = time.perf_counter()
     train(data, run, config, device=args.device, resume=resume, force=not resume, progress=not args.quiet)
     seconds = time.perf_counter() - t0
     model = meshseq.load(run)
