@@ -122,6 +122,10 @@ def test_a_record_scored_with_another_pace_or_trust_rule_says_so(tmp_path):
     path = tmp_path / "old.json"
     path.write_text(json.dumps(rec))
     assert "| bodies unseen sequence, 2000 it, pace warm-up, trust warm-up |" in generalize.table([str(path)])
+    rec["train"]["consistency"] = "temporal"  # trained before the smallest-turn walk
+    assert generalize.record_label(rec) == "bodies, 2000 it, pace warm-up, trust warm-up, temporal logs"
+    rec["train"]["holdout"] = 0.2  # a single capture: the same features under both walks
+    assert generalize.record_label(rec) == "bodies, 2000 it, pace warm-up, trust warm-up"
 
 
 def test_controlled_run_changes_are_checked_as_config_lines():
