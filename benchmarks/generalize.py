@@ -205,7 +205,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
         blocks.append(block)
         print(line(tag, block), flush=True)
     out = {"set": name, "holdout_at": holdout_at, "iteration": model.iteration, "seconds_training": seconds,
-           "pace": scored_pace(), "trust": TRUST, "train": config.to_dict(), "novelty_reference": reference,
+           "pace": scored_pace(), "trust": TRUST, "train": model.meta["train"], "novelty_reference": reference,
            "blocks": blocks,
            "command": "python benchmarks/generalize.py " + " ".join(args.argv)}
     if held_out:
