@@ -44,6 +44,19 @@ def errors(model, truth: np.ndarray, feats: np.ndarray) -> np.ndarray:
     return vertex_errors(pred, truth)
 
 
+def prediction_windows(verts: np.ndarray, feats: np.ndarray, given: int, every: int):
+    """Every ``every``-th start of a sequence (vertices ``(T, V, 3)``, scaled features ``(T, V, C)``)
+    with ``given`` frames and H after them: ``(starts (B,), given features (B, U, V, C), true vertices
+    (B, H, V, 3), the last given frame held (B, H, V, 3): zero velocity)``."""
+    from meshseq.evaluate import prediction_starts
+
+    starts = prediction_starts(0, len(verts), given, H, every)
+    x = np.stack([feats[s:s + given] for s in starts])
+    truth = np.stack([verts[s + given:s + given + H] for s in starts])
+    held = np.repeat(verts[starts + given - 1][:, None], H, 1)
+    return starts, x, truth, held
+
+
 def vertex_errors(pred: np.ndarray, truth: np.ndarray, rigid: bool = False) -> np.ndarray:
     """Mean centroid-aligned (``rigid``: also rotation-aligned) error at h5 / h10 / h15 of predicted
     vertices ``(B, H, V, 3)``."""
@@ -57,7 +70,6 @@ def main() -> None:
     import meshseq
     from meshseq import baselines, novelty
     from meshseq.data.windows import Split
-    from meshseq.evaluate import prediction_starts
     from meshseq.io import load_sequence
     from meshseq.synthesize import predict
 
@@ -87,10 +99,7 @@ def main() -> None:
         verts = load_sequence(spec).vertices.astype(np.float64)
         feats = model.features(verts)
         for u in (1, 3):
-            starts = prediction_starts(0, len(verts), u, H, args.every)
-            given = np.stack([feats[s:s + u] for s in starts])
-            truth = np.stack([verts[s + u:s + u + H] for s in starts])
-            zero = np.repeat(verts[starts + u - 1][:, None], H, 1)
+            starts, given, truth, zero = prediction_windows(verts, feats, u, args.every)
             best = np.minimum(vertex_errors(zero, truth), errors(model, truth, baselines.linear_acap(given, H)))
             nov = novelty.novelty(model.engine.encode(given.reshape(-1, *given.shape[2:])),
                                   model.novelty).reshape(len(starts), u).max(1)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from novelty_guard import CELLS, H as HORIZON  # noqa: E402  (a sibling script: h5 / h10 / h15)
+from novelty_guard import CELLS, H as HORIZON, prediction_windows  # noqa: E402  (a sibling script)
 
 
 def part_errors(pred: np.ndarray, truth: np.ndarray, masks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -43,20 +43,14 @@ def part_masks(faces: np.ndarray, n_vertices: int) -> dict[str, np.ndarray]:
 
 def sequence_errors(model, verts: np.ndarray, faces: np.ndarray, given: int, every: int) -> dict:
     """``{method: {part: (3,)}}`` for one sequence ``(T, V, 3)``: ours guarded, unguarded, zero velocity."""
-    from meshseq.evaluate import prediction_starts
     from meshseq.synthesize import predict
 
-    starts = prediction_starts(0, len(verts), given, HORIZON, every)
-    feats = model.features(verts)
-    steps = np.arange(1, HORIZON + 1)
-    truth = np.stack([verts[s + given - 1 + steps] for s in starts])  # (B, H, V, 3)
+    _, x, truth, zero = prediction_windows(verts, model.features(verts), given, every)
     masks = part_masks(faces, verts.shape[1])
-    x = np.stack([feats[s:s + given] for s in starts])
     out = {}
     for name, guard in (("ours", True), ("ours, guard off", False)):
         f = predict(model, x, HORIZON, guard=guard)
         out[name] = part_errors(model.vertices(f.reshape(-1, *f.shape[2:])).reshape(truth.shape), truth, masks)
-    zero = np.repeat(np.stack([verts[s + given - 1] for s in starts])[:, None], HORIZON, 1)
     out["zero velocity"] = part_errors(zero, truth, masks)
     return out
 

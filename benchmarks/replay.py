@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from novelty_guard import H as HORIZON, errors, vertex_errors  # noqa: E402  (a sibling script)
+from novelty_guard import H as HORIZON, errors, prediction_windows, vertex_errors  # noqa: E402  (a sibling script)
 
 
 def replayed(given_last: np.ndarray, rollout: np.ndarray, tempo: float) -> np.ndarray:
@@ -44,16 +44,12 @@ def ratios(model, verts: np.ndarray, feats: np.ndarray, given: int, every: int,
            carry: float | None = None) -> dict[str, np.ndarray]:
     """``{"tempo k" | "amplitude k": (3,)}`` ours replayed over the best baseline at h5 / h10 / h15
     (``pace``, ``carry``: ``predict``'s, None for its default)."""
-    from meshseq.evaluate import predicted_features, prediction_starts
+    from meshseq.evaluate import predicted_features
     from meshseq.synthesize import predict
 
-    starts = prediction_starts(0, len(verts), given, HORIZON, every)
-    steps = np.arange(1, HORIZON + 1)
-    truth = np.stack([verts[s + given - 1 + steps] for s in starts])  # (B, H, V, 3)
-    zero = vertex_errors(np.repeat(np.stack([verts[s + given - 1] for s in starts])[:, None], HORIZON, 1), truth)
-    best = np.minimum(zero, errors(model, truth, predicted_features("linear_acap", model, feats, starts, given,
-                                                                    HORIZON, None)))
-    x = np.stack([feats[s:s + given] for s in starts])
+    starts, x, truth, held = prediction_windows(verts, feats, given, every)
+    best = np.minimum(vertex_errors(held, truth), errors(model, truth, predicted_features(
+        "linear_acap", model, feats, starts, given, HORIZON, None)))
     options = {k: v for k, v in (("pace", pace), ("carry", carry)) if v is not None}
     rollout = predict(model, x, int(np.ceil(HORIZON / min(tempos + [1.0]))) + 1, **options)
     out = {f"tempo {k:g}": errors(model, truth, replayed(x[:, -1], rollout, k)) / best for k in tempos}

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from novelty_guard import H as HORIZON, vertex_errors  # noqa: E402  (a sibling script: h5 / h10 / h15)
+from novelty_guard import H as HORIZON, prediction_windows, vertex_errors  # noqa: E402  (a sibling script)
 
 RULES = {"default": {}, "pace model": {"pace": "model"}, "carry 0": {"carry": 0.0},
          "pace model, carry 0": {"pace": "model", "carry": 0.0}, "guard off": {"guard": False},
@@ -29,19 +29,12 @@ def rule_ratios(model, verts: np.ndarray, given: int, every: int) -> tuple[dict,
     """``({rule: {"centroid" / "rigid": (3,)}}, share of starts slowed)``: each rule's error over
     zero velocity's at h5 / h10 / h15 for one sequence ``(T, V, 3)``."""
     from meshseq import novelty
-    from meshseq.evaluate import prediction_starts
     from meshseq.synthesize import predict
 
-    h = HORIZON
-    starts = prediction_starts(0, len(verts), given, h, every)
-    feats = model.features(verts)
-    steps = np.arange(1, h + 1)
-    truth = np.stack([verts[s + given - 1 + steps] for s in starts])  # (B, H, V, 3)
-    zero = np.repeat(np.stack([verts[s + given - 1] for s in starts])[:, None], h, 1)
-    x = np.stack([feats[s:s + given] for s in starts])
+    _, x, truth, zero = prediction_windows(verts, model.features(verts), given, every)
     out = {}
     for name, options in RULES.items():
-        f = predict(model, x, h, **options)
+        f = predict(model, x, HORIZON, **options)
         pred = model.vertices(f.reshape(-1, *f.shape[2:])).reshape(truth.shape)
         out[name] = {key: vertex_errors(pred, truth, rigid) / vertex_errors(zero, truth, rigid)
                      for key, rigid in (("centroid", False), ("rigid", True))}
