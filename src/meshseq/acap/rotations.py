@@ -131,7 +131,7 @@ def smallest_turn_tree(axis: np.ndarray, theta: np.ndarray, topology: Topology,
     """
     e = topology.edges
     q = _unit_quaternions(axis, theta)
-    turn = 2.0 * np.arccos(np.clip(np.abs(np.einsum("ec,ec->e", q[e[:, 0]], q[e[:, 1]])), 0.0, 1.0))
+    turn = _turn_between(q[e[:, 0]], q[e[:, 1]])
     n = topology.n_vertices
     # csgraph drops explicit zeros: an edge between two equal rotations still weighs a little
     graph = sp.csr_matrix((turn + 1e-12, (e[:, 0], e[:, 1])), shape=(n, n))
@@ -256,6 +256,11 @@ def _unit_quaternions(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     return np.concatenate([np.cos(half)[..., None], np.sin(half)[..., None] * axis], axis=-1)
 
 
+def _turn_between(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Angle ``(...)`` of the rotation from unit quaternions ``p`` to ``q`` ``(..., 4)`` (either sign)."""
+    return 2.0 * np.arccos(np.clip(np.abs(np.einsum("...c,...c->...", p, q)), 0.0, 1.0))
+
+
 def relative_angles(logs: np.ndarray) -> np.ndarray:
     """Angle of the rotation between consecutive frames, ``(T - 1, V)`` for logs ``(T, V, 3)``.
 
@@ -264,7 +269,7 @@ def relative_angles(logs: np.ndarray) -> np.ndarray:
     norm = np.linalg.norm(logs, axis=-1)
     axis = np.divide(logs, norm[..., None], out=np.zeros_like(logs), where=norm[..., None] > 0)
     q = _unit_quaternions(axis, norm)
-    return 2.0 * np.arccos(np.clip(np.abs(np.einsum("tvc,tvc->tv", q[:-1], q[1:])), 0.0, 1.0))
+    return _turn_between(q[:-1], q[1:])
 
 
 def fewest_jumps(axis: np.ndarray, theta: np.ndarray, first: np.ndarray, reach: float = 3 * np.pi) -> np.ndarray:
@@ -287,7 +292,7 @@ def fewest_jumps(axis: np.ndarray, theta: np.ndarray, first: np.ndarray, reach: 
     norm0 = base[0]
     # rotation change per step, from the principal representatives (branch-independent)
     q = _unit_quaternions(w, base)
-    free = 2.0 * np.arccos(np.clip(np.abs(np.einsum("tvc,tvc->tv", q[:-1], q[1:])), 0.0, 1.0)) >= JUMP_MOTION
+    free = _turn_between(q[:-1], q[1:]) >= JUMP_MOTION
     cos_turn = np.einsum("tvc,tvc->tv", w[:-1], w[1:])
 
     m_max = max(1, int(np.ceil(max(reach, float(norm0.max(initial=0.0))) / TWO_PI)))
