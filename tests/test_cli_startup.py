@@ -55,9 +55,11 @@ def test_console_script_help_imports_no_torch():
 
 def test_choices_listed_without_the_library_match_it():
     from meshseq import checkpoint_schema
-    from meshseq.acap import CONSISTENCY_MODES
+    from meshseq.acap import CONSISTENCY_MODES, DEFAULT_CONSISTENCY
     from meshseq.cli import acap_cmds, bodies_cmds
     from meshseq.data.motions import MOTIONS
+    from meshseq.train import TrainConfig
 
     assert acap_cmds.CONSISTENCY_MODES == CONSISTENCY_MODES == checkpoint_schema.CONSISTENCY_MODES
+    assert TrainConfig.consistency == DEFAULT_CONSISTENCY == CONSISTENCY_MODES[0]  # the config keeps a copy
     assert bodies_cmds.MOTIONS == MOTIONS

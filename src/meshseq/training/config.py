@@ -148,7 +148,7 @@ class TrainConfig:
     placement_jitter: float = 0.1
     placement: str = "anchor"
     scaling: str = "two-group"
-    consistency: str = "temporal-mst"  # acap.DEFAULT_CONSISTENCY
+    consistency: str = "temporal-mst"  # acap.DEFAULT_CONSISTENCY (a test checks they agree)
     given: int = 1
     step_scale: str = "none"
     input_norm: bool = True

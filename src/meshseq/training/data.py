@@ -26,7 +26,7 @@ class TrainingData:
     features: list[np.ndarray]
     faces: np.ndarray
     reference: np.ndarray
-    consistency: str = "temporal-mst"  # the rotation consistency the features were extracted with
+    consistency: str = TrainConfig.consistency  # the rotation consistency the features were extracted with
     placement: str = TrainConfig.placement  # what the placement channels (several parts) measure from: acap.parts
 
     @property
