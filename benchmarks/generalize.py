@@ -68,8 +68,12 @@ def record_consistency(rec: dict) -> str | None:
     from meshseq.acap import DEFAULT_CONSISTENCY
 
     consistency = rec["train"].get("consistency", "temporal")
-    single_capture = rec["train"]["holdout"] != 0
-    return None if consistency == DEFAULT_CONSISTENCY or single_capture else consistency
+    return None if consistency == DEFAULT_CONSISTENCY or single_capture(rec) else consistency
+
+
+def single_capture(rec: dict) -> bool:
+    """Whether a record scored one capture's held-out block (a body set's scores unseen sequences)."""
+    return rec["train"]["holdout"] != 0
 
 
 def body_specs(path: str, subject: str, motion: str) -> tuple[list[str], list[str]]:
@@ -361,7 +365,7 @@ def table(files: list[str]) -> str:
         for b in rec["blocks"]:
             pred = [ratio_cell(prediction_ratio(b, *cell)) for cell in cells]
             comp = [f"{completion_ratio(b, g):.2f}" if g in b["completion"] else "-" for g in ("5", "10", "20", "30")]
-            block = "unseen sequence" if rec["train"]["holdout"] == 0 else f"@ {rec['holdout_at']}"
+            block = f"@ {rec['holdout_at']}" if single_capture(rec) else "unseen sequence"
             name, _, rest = record_label(rec).partition(", ")
             rows.append(f"| {name} {block}, {rest} | "
                         f"{Path(b['sequence']).name} | "
@@ -378,7 +382,7 @@ TARGETS = ("motion training shows: below 1", "novel motion: at most 1.5", "gaps 
 def block_kind(rec: dict, block: dict) -> str:
     """``subject`` (a held-out subject's trained motion), ``novel`` (a motion never trained on, or a
     held-out end at least one typical step from every training frame) or ``shown``."""
-    if rec["train"]["holdout"] != 0:
+    if single_capture(rec):
         return "novel" if block["novelty"] >= 1 else "shown"
     held = rec.get("held_out") or held_out_of(rec["command"])
     name = block["sequence"].rsplit(":", 1)[-1]
