@@ -35,6 +35,7 @@ HORIZONS = (5, 10, 15)
 GAPS = (5, 10, 20, 30)
 COMPLETION = ("ours", "stitch", "linear", "linear_vertices")
 PREDICTION = ("ours", "zero_velocity", "linear_acap", "vae_latent")
+HOLDOUT = 0.2  # the paper's held-out fraction of a capture
 HOLD_SUBJECT, HOLD_MOTION = "male_slim", "shake_arms"  # the body set's held-out subject and motion
 #: the pace rule of records scored before they named theirs (``synthesize.PACES``)
 PACE_UNNAMED = "warm-up"
@@ -160,7 +161,7 @@ def training_level(specs: list[str], splits) -> float:
 
 
 def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], args, holdout_at: str,
-            holdout: float = 0.2, held_out: dict | None = None) -> dict:
+            holdout: float = HOLDOUT, held_out: dict | None = None) -> dict:
     """Train (or resume) the default recipe on ``specs`` and score the held-out blocks.
 
     ``scored``: ``(index into specs or None for an unseen sequence, spec)``; ``held_out``: for a
@@ -469,6 +470,9 @@ def main(argv=None) -> None:
     p.add_argument("--bodies", default=None, help="make-bodies HDF5 for the set 'bodies'")
     p.add_argument("--bodies-name", default="bodies", help="the body set's name in the records (e.g. bodies-parts "
                    "for a set made with make-bodies --parts)")
+    p.add_argument("--holdout", type=float, default=HOLDOUT,
+                   help=f"the fraction of a capture held out ({HOLDOUT:g}, the paper's); another names the "
+                   "records SET-holdoutF (a controlled run: training shows part of the paper's held-out end)")
     p.add_argument("--hold-subject", default=HOLD_SUBJECT)
     p.add_argument("--hold-motion", default=HOLD_MOTION)
     p.add_argument("--change", action="append", default=[], metavar="KEY=VALUE",
@@ -505,8 +509,9 @@ def main(argv=None) -> None:
                     held_out={"subject": args.hold_subject, "motion": args.hold_motion})
             continue
         spec = str(SHARED / f"{name}.npz") if (SHARED / f"{name}.npz").is_file() else name
+        name = Path(spec).stem + ("" if args.holdout == HOLDOUT else f"-holdout{args.holdout:g}")
         for at in args.blocks:
-            run_set(Path(spec).stem, [spec], [(0, spec)], args, at)
+            run_set(name, [spec], [(0, spec)], args, at, holdout=args.holdout)
 
 
 if __name__ == "__main__":
