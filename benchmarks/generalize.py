@@ -67,8 +67,9 @@ def record_consistency(rec: dict) -> str | None:
     and gives other features: on a single capture (its first frame the reference, every
     first-frame rotation the identity) every temporal walk gives the same features."""
     from meshseq.acap import DEFAULT_CONSISTENCY
+    from meshseq.checkpoint_schema import UNNAMED_CONSISTENCY
 
-    consistency = rec["train"].get("consistency", "temporal")
+    consistency = rec["train"].get("consistency", UNNAMED_CONSISTENCY)
     return None if consistency == DEFAULT_CONSISTENCY or single_capture(rec) else consistency
 
 
@@ -169,6 +170,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     """
     import meshseq
     from meshseq import checkpoint as ckpt
+    from meshseq.checkpoint_schema import feature_options
     from meshseq.data.windows import Split
     from meshseq.io import load_sequence
     from meshseq.train import TrainConfig, load_training_data, train
@@ -188,8 +190,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     resume = bool(ckpt.list_checkpoints(run))  # a run stopped before its first checkpoint starts over
     consistency, placement = config.consistency, config.placement
     if resume:  # features as the run was trained on (its stored options)
-        stored = ckpt.load_latest(run).meta["train"]
-        consistency, placement = stored.get("consistency", "temporal"), stored.get("placement", "centroid")
+        consistency, placement = feature_options(ckpt.load_latest(run).meta)
     data = load_training_data(specs, consistency=consistency, placement=placement)
     t0 = time.perf_counter()
     train(data, run, config, device=args.device, resume=resume, force=not resume, progress=not args.quiet)

@@ -522,8 +522,16 @@ def test_a_run_of_every_consistency_loads_and_extracts_features_with_it(tmp_path
     train(data, run, TrainConfig(iterations=2, window=6, batch=2, eval_every=0, consistency=consistency), SMALL,
           device="cpu", progress=False, log=None)
     model = meshseq.load(run)
-    assert model.meta["features"]["consistency"] == consistency
+    assert model.meta["features"]["consistency"] == model.consistency == consistency
     np.testing.assert_array_equal(model.features(seq.vertices), model.scaling.apply(feats).astype(np.float32))
+
+
+def test_a_checkpoint_that_names_no_feature_options_reads_as_stored_before_they_were_named():
+    from meshseq.checkpoint_schema import UNNAMED_CONSISTENCY, UNNAMED_PLACEMENT, feature_options
+
+    assert feature_options({}) == (UNNAMED_CONSISTENCY, UNNAMED_PLACEMENT) == ("temporal", "centroid")
+    assert feature_options({"features": {"consistency": "greedy"}}) == ("greedy", "centroid")
+    assert feature_options({"features": {"consistency": "spatial", "placement": "anchor"}}) == ("spatial", "anchor")
 
 
 def test_damaged_checkpoint_does_not_count_toward_keep(tmp_path, limb):

@@ -20,6 +20,7 @@ import os
 import numpy as np
 
 from meshseq import checkpoint as ckpt
+from meshseq.checkpoint_schema import feature_options
 from meshseq.errors import MeshseqError
 from meshseq.model_config import ModelConfig
 
@@ -84,8 +85,9 @@ class Model:
         self.reference = reference
         self.faces = faces
         self.scaling = Scaling.from_dict(meta["scaling"])
-        # what a multi-part model's placement channels measure from (acap.parts.PLACEMENT_MODES)
-        self.placement = meta.get("features", {}).get("placement", "centroid")
+        # the rotation consistency of its features (acap.CONSISTENCY_MODES) and what a multi-part
+        # model's placement channels measure from (acap.parts.PLACEMENT_MODES)
+        self.consistency, self.placement = feature_options(meta)
         self._reconstructor = reconstructor  # an acap.Reconstructor of (reference, faces); made when first needed
         self.novelty = novelty  # meshseq.novelty.NoveltyReference of the training frames, or None
 
@@ -116,8 +118,7 @@ class Model:
             self.check_mesh(np.asarray(faces), v.shape[1])
         elif v.shape[1] != self.config.n_vertices:
             raise MeshseqError(f"vertices have {v.shape[1]} vertices, the model expects {self.config.n_vertices}")
-        consistency = self.meta.get("features", {}).get("consistency", "temporal")
-        f = acap.extract(v, self.faces, reference=self.reference, consistency=consistency,
+        f = acap.extract(v, self.faces, reference=self.reference, consistency=self.consistency,
                          placement=self.config.channels > 9, placement_mode=self.placement)
         return self.scaling.apply(f).astype(np.float32)
 

@@ -29,6 +29,8 @@ from meshseq.errors import MeshseqError
 #: acap.CONSISTENCY_MODES, kept here so that reading a checkpoint's schema imports no mesh code (a
 #: test checks they agree)
 CONSISTENCY_MODES = ("temporal-mst", "temporal", "spatial", "greedy")
+#: the rotation consistency and placement of checkpoints stored before model.json named theirs
+UNNAMED_CONSISTENCY, UNNAMED_PLACEMENT = "temporal", "centroid"
 
 #: what a checkpoint's model.json says it is (``format``) and the newest version this meshseq reads
 FORMAT = "meshseq-bdlstm-checkpoint"
@@ -200,7 +202,7 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
         raise CheckpointError(file, "datasets", "empty")
     for i, d in enumerate(meta["datasets"]):
         _check_split(d, file, f"datasets[{i}]")
-    consistency = meta.get("features", {}).get("consistency", "temporal")
+    consistency, placement = feature_options(meta)
     if consistency not in CONSISTENCY_MODES:
         raise CheckpointError(file, "features.consistency",
                               f"{consistency!r}: expected one of {', '.join(CONSISTENCY_MODES)}")
@@ -208,9 +210,15 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
     if nov is not None and not (nov["step"] > 0 and math.isfinite(nov["step"]) and nov["frames"] >= 1):
         raise CheckpointError(file, "novelty", f"step {nov['step']} and frames {nov['frames']}: expected a positive "
                               "step and at least one frame")
-    placement = meta.get("features", {}).get("placement", "centroid")
     if placement not in ("centroid", "anchor"):  # acap.parts.PLACEMENT_MODES
         raise CheckpointError(file, "features.placement", f"{placement!r}: expected centroid or anchor")
+
+
+def feature_options(meta: dict) -> tuple[str, str]:
+    """``(consistency, placement)``: the rotation consistency and part placement a checkpoint's
+    features were extracted with (model.json's ``features``; ``UNNAMED_*`` where it names none)."""
+    features = meta.get("features", {})
+    return features.get("consistency", UNNAMED_CONSISTENCY), features.get("placement", UNNAMED_PLACEMENT)
 
 
 def _check_iteration(meta: dict, file, iteration: int | None) -> None:

@@ -70,6 +70,7 @@ def train_options(args) -> tuple[object, dict]:
 
 
 def _train(args) -> int:
+    from meshseq.checkpoint_schema import feature_options
     from meshseq.errors import MeshseqError
     from meshseq.io import check_writable
     from meshseq.model import ModelConfig
@@ -92,8 +93,7 @@ def _train(args) -> int:
     ModelConfig.check_options(model_options)  # every option is checked before the data is loaded
     consistency, placement = config.consistency, config.placement
     if args.resume and not args.force:  # features as the run was trained on (its stored options)
-        stored = resume_point(out).meta["train"]
-        consistency, placement = stored["consistency"], stored.get("placement", "centroid")
+        consistency, placement = feature_options(resume_point(out).meta)
     data = load_training_data(args.data, consistency=consistency, placement=placement)
     created = not out.exists()
     try:

@@ -1,0 +1,67 @@
+"""Score a trained generalize.py run on any frames of a capture, as the benchmark scores a held-out
+block: the reference for a controlled run that shows training part of a block (method.md, "What
+the generalisation benchmark leaves unmet").
+
+    python benchmarks/generalize.py --sets pcow --holdout 0.1 --out runs/generalize
+    python benchmarks/score_frames.py runs/generalize/pcow-at-end pcow.npz 184 204
+
+prints the benchmark's line for frames ``[FIRST, STOP)`` of SPEC scored with RUN (its novelty
+against RUN's training frames, ours over the best baseline, ours over the better interpolation,
+the motion of 50 generated frames), and with ``-o`` writes the block as the records hold it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import generalize  # noqa: E402  (a sibling script)
+
+
+def score_frames(run: str, spec: str, first: int, stop: int) -> dict:
+    """The benchmark's block ``[first, stop)`` of ``spec`` scored with the run in ``run``, against
+    the frames that run trained on (every sequence it trained on must be ``spec``)."""
+    import meshseq
+    from meshseq.data.windows import Split
+    from meshseq.io import load_sequence
+
+    model = meshseq.load(run)
+    splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
+    if len(splits) != 1:
+        raise SystemExit(f"{run}: trained on {len(splits)} sequences; this scores a run of one capture")
+    verts = load_sequence(spec).vertices.astype(np.float64)
+    if not 0 <= first < stop <= len(verts):
+        raise SystemExit(f"{spec}: frames {first}-{stop} outside its {len(verts)} frames")
+    feats = model.features(verts)
+    generalize.ensure_novelty(model, [spec], splits)
+    train_feats = np.concatenate([feats[a:b] for a, b in splits[0].train])
+    vae = generalize.train_vae_baseline(model, train_feats)
+    level = generalize.training_level([spec], splits)
+    block = generalize.score_block(model, vae, verts, feats, train_feats, level, first, stop)
+    block["sequence"] = spec
+    return block
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run")
+    p.add_argument("spec", help="the capture (a file in the shared data folder may be named alone)")
+    p.add_argument("first", type=int, help="the block's first frame")
+    p.add_argument("stop", type=int, help="the frame after its last")
+    p.add_argument("-o", "--out", help="write the scored block as JSON")
+    args = p.parse_args()
+    shared = generalize.SHARED / args.spec
+    spec = str(shared) if shared.is_file() else args.spec
+    block = score_frames(args.run, spec, args.first, args.stop)
+    print(generalize.line(f"{Path(args.run).name} frames {args.first}-{args.stop}", block), flush=True)
+    if args.out:
+        Path(args.out).write_text(json.dumps(block, indent=1))
+
+
+if __name__ == "__main__":
+    main()
