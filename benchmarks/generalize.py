@@ -16,7 +16,10 @@ Runs resume (a run folder with checkpoints continues to ``--iterations``), and a
 evaluation is reused, so a long benchmark continues across sessions. The body set (``bodies``:
 every sequence of a ``meshseq make-bodies`` file) trains on all subjects and motions but one
 subject and one motion, and scores the held-out subject's and the held-out motion's sequences
-whole, as skeletal in-betweening benchmarks hold out subjects.
+whole, as skeletal in-betweening benchmarks hold out subjects. ``--holdout F`` holds out F of a
+capture's frames instead of the paper's 0.2 (records ``SET-holdoutF``): with a smaller F, training
+shows the first part of the benchmark's held-out end, and ``benchmarks/score_frames.py`` scores the
+benchmark's own run on the frames still held out, for comparison.
 """
 
 from __future__ import annotations
@@ -462,6 +465,12 @@ def targets_table(files: list[str]) -> str:
     return "\n".join(rows)
 
 
+def capture_name(spec: str, holdout: float) -> str:
+    """A capture's set name in the records: its file's stem, with ``-holdoutF`` where a controlled
+    run holds out another fraction ``F`` than the paper's."""
+    return Path(spec).stem + ("" if holdout == HOLDOUT else f"-holdout{holdout:g}")
+
+
 def main(argv=None) -> None:
     import sys
 
@@ -510,7 +519,7 @@ def main(argv=None) -> None:
                     held_out={"subject": args.hold_subject, "motion": args.hold_motion})
             continue
         spec = str(SHARED / f"{name}.npz") if (SHARED / f"{name}.npz").is_file() else name
-        name = Path(spec).stem + ("" if args.holdout == HOLDOUT else f"-holdout{args.holdout:g}")
+        name = capture_name(spec, args.holdout)
         for at in args.blocks:
             run_set(name, [spec], [(0, spec)], args, at, holdout=args.holdout)
 

@@ -428,8 +428,9 @@ def generalization_section(files: list[Path]) -> list[str]:
         commands = [f"- {json.loads(Path(f).read_text())['set']}: `{json.loads(Path(f).read_text())['command']}`"
                     for f in controlled]
         lines += ["### Controlled runs", "",
-                  "The body set's (bodies-parts-*: the multi-part set's) benchmark run with one thing changed (seed and "
-                  "budget kept), named by its set "
+                  "A benchmark run with one thing changed (seed and budget kept), named by its set: bodies-* the "
+                  "body set's, bodies-parts-* the multi-part set's, CAPTURE-holdoutF the capture with only the last F "
+                  "of its frames held out, so that training shows the first part of the benchmark's held-out end "
                   "([method.md](method.md#what-the-generalisation-benchmark-leaves-unmet) says what each changes):", "",
                   *commands, "", *generalize.table(controlled).splitlines(), "",
                   *generalize.targets_table(controlled).splitlines(), ""]

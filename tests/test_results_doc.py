@@ -128,6 +128,13 @@ def test_a_record_scored_with_another_pace_or_trust_rule_says_so(tmp_path):
     assert generalize.record_label(rec) == "bodies, 2000 it, pace warm-up, trust warm-up"
 
 
+def test_a_capture_held_out_by_another_fraction_is_named_for_it():
+    generalize = _generalize()
+    assert generalize.capture_name("/data/pcow.npz", generalize.HOLDOUT) == "pcow"
+    assert generalize.capture_name("/data/pcow.npz", 0.1) == "pcow-holdout0.1"
+    assert generalize.capture_name("crane.npz", 0.05) == "crane-holdout0.05"
+
+
 def test_controlled_run_changes_are_checked_as_config_lines():
     import pytest
 
