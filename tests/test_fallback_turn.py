@@ -1,0 +1,61 @@
+"""benchmarks/fallback_turn.py: the turned fallbacks it measures keep a turning shape's shape."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _fallback_turn():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    spec = importlib.util.spec_from_file_location("fallback_turn_benchmark", ROOT / "benchmarks" / "fallback_turn.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _frames(rotations: list[Rotation], stretch: np.ndarray) -> np.ndarray:
+    """Unscaled features ``(1, len(rotations), V, 9)``: each frame's rotation logs and one stretch."""
+    return np.stack([np.concatenate([r.as_rotvec(), stretch], axis=1) for r in rotations])[None]
+
+
+def test_a_mesh_that_only_turns_is_turned_on_with_its_shape_kept():
+    ft = _fallback_turn()
+    rng = np.random.default_rng(0)
+    own = Rotation.from_rotvec(rng.normal(0, 0.8, (6, 3)))  # each vertex's rotation against the reference
+    stretch = rng.normal(0, 0.1, (6, 6))
+    q0, step = Rotation.from_rotvec([0.3, -0.2, 0.1]), Rotation.from_rotvec([0.0, 0.15, 0.05])
+    raw = _frames([q0 * own, step * q0 * own], stretch)
+    assert ft.turn_share(raw)[0] < 1e-6
+    reach = np.array([[1.0, 2.5]])
+    out = ft.turned(raw, reach, np.ones(1))  # with its own steps in full: the same, they are nil
+    for k, r in enumerate(reach[0]):
+        want = Rotation.from_rotvec(r * step.as_rotvec()) * step * q0 * own
+        got = Rotation.from_rotvec(out[0, k, :, :3])
+        assert np.allclose((got * want.inv()).magnitude(), 0.0, atol=1e-9)
+        np.testing.assert_allclose(out[0, k, :, 3:], stretch, atol=1e-12)
+
+
+def test_a_mesh_whose_vertices_turn_apart_continues_each_vertex_and_the_rigid_turn_holds_them():
+    ft = _fallback_turn()
+    rng = np.random.default_rng(1)
+    base = Rotation.from_rotvec(rng.normal(0, 0.5, (8, 3)))
+    steps = Rotation.from_rotvec(rng.normal(0, 0.1, (8, 3)))
+    steps = Rotation.from_rotvec(steps.as_rotvec() - steps.as_rotvec().mean(0))  # no common turn, about
+    stretch0, stretch1 = rng.normal(0, 0.1, (8, 6)), rng.normal(0, 0.1, (8, 6))
+    raw = np.concatenate([_frames([base], stretch0), _frames([steps * base], stretch1)], axis=1)
+    assert ft.turn_share(raw)[0] > 0.9
+    held = ft.turned(raw, np.array([[1.0, 2.0]]), np.zeros(1))
+    turn, _, _ = ft.turn_steps(raw)
+    for k in range(2):  # the rigid turn: the last shape's stretch, turned by the (small) mean turn
+        np.testing.assert_allclose(held[0, k, :, 3:], stretch1, atol=1e-12)
+        got = Rotation.from_rotvec(held[0, k, :, :3]) * (steps * base).inv()
+        assert np.allclose(got.as_rotvec(), (k + 1) * turn[0], atol=1e-9)
+    moved = ft.turned(raw, np.array([[1.0]]), np.ones(1))
+    np.testing.assert_allclose(moved[0, 0, :, 3:], 2 * stretch1 - stretch0, atol=1e-12)
+    want = steps * steps * base
+    assert np.allclose((Rotation.from_rotvec(moved[0, 0, :, :3]) * want.inv()).magnitude(), 0.0, atol=1e-9)
