@@ -461,7 +461,11 @@ def targets_table(files: list[str]) -> str:
     rows = ["| set, iterations | " + " | ".join(TARGETS) + " |", "|" + "---|" * (len(TARGETS) + 1)]
     for f in files:
         rec = json.loads(Path(f).read_text())
-        rows.append(f"| {record_label(rec)} | " + " | ".join(record_targets(rec)) + " |")
+        label = record_label(rec)
+        if single_capture(rec) and rec["holdout_at"] != "end":  # a block inside the capture
+            name, _, rest = label.partition(", ")
+            label = f"{name} @ {rec['holdout_at']}, {rest}"
+        rows.append(f"| {label} | " + " | ".join(record_targets(rec)) + " |")
     return "\n".join(rows)
 
 

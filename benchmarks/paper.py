@@ -396,7 +396,7 @@ def generalization_section(files: list[Path]) -> list[str]:
     lines = ["## Generalisation: the default recipe on every capture, no per-set options", "",
              "Made by `benchmarks/generalize.py` (records in `docs/results/generalize/`): each set trained with "
              "every default (seed 0 unless its row names another) for the iterations its row says, then scored on blocks it never saw: the held-out end "
-             "of each capture, and for the body set the sequences of one subject (male_slim) and one motion "
+             "of each capture (and for pcow a block inside it as well, `--blocks 0.5`: its frames 102-142), and for the body set the sequences of one subject (male_slim) and one motion "
              "(shake_arms) held out entirely; bodies-parts is the same set made with `make-bodies --parts eyes,strap` "
              "(two eyes and a bag strap as separate parts, 1,612 vertices). Novelty: the block's median distance to the nearest training frame "
              "in typical training steps (1 = one step away). Motion: the block's mean vertex motion per frame over "

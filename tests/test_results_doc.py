@@ -135,6 +135,17 @@ def test_a_capture_held_out_by_another_fraction_is_named_for_it():
     assert generalize.capture_name("crane.npz", 0.05) == "crane-holdout0.05"
 
 
+def test_the_targets_table_names_a_block_inside_a_capture(tmp_path):
+    generalize = _generalize()
+    rec = json.loads((RECORDS / "generalize" / "pcow-at-end.json").read_text())
+    path = tmp_path / "pcow.json"
+    path.write_text(json.dumps(rec))
+    assert "| pcow, 2000 it |" in generalize.targets_table([str(path)])
+    rec["holdout_at"] = "0.5"
+    path.write_text(json.dumps(rec))
+    assert "| pcow @ 0.5, 2000 it |" in generalize.targets_table([str(path)])
+
+
 def test_controlled_run_changes_are_checked_as_config_lines():
     import pytest
 
