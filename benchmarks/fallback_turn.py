@@ -136,12 +136,12 @@ def main(argv: list[str] | None = None) -> None:
         first, stop = (int(x) for x in frames.split(",")) if frames else (0, len(verts))
         res = ratios(model, verts[first:stop], feats[first:stop], args.every)
         for rule in RULES:
-            pooled[rule].append((res[rule], res["starts"]))
+            pooled[rule].append(res[rule])
         print(f"{spec.rsplit('/', 1)[-1]} ({res['starts']} starts): " + "  ".join(
             f"{rule} {fmt(res[rule])}" for rule in RULES), flush=True)
     if len(args.specs) > 1:
         print(f"mean over the {len(args.specs)} sequences: " + "  ".join(
-            f"{rule} {fmt(np.mean([r for r, _ in rows], axis=0))}" for rule, rows in pooled.items()))
+            f"{rule} {fmt(np.mean(rows, axis=0))}" for rule, rows in pooled.items()))
 
 
 def fmt(r: np.ndarray) -> str:
