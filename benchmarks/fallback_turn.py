@@ -62,23 +62,22 @@ def turn_steps(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return Rotation.from_matrix(q).as_rotvec(), own.as_rotvec().reshape(b, v, 3), steps.as_rotvec().reshape(b, v, 3)
 
 
-def turn_share(raw: np.ndarray) -> np.ndarray:
-    """``(B,)``: the vertices' mean own rotation step (``turn_steps``) over their mean rotation step."""
-    _, own, steps = turn_steps(raw)
+def turn_share(own_step: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """``(B,)``: the vertices' mean own rotation step over their mean rotation step (``turn_steps``'
+    ``(B, V, 3)``)."""
     total = np.linalg.norm(steps, axis=-1).mean(1)
-    return np.clip(np.linalg.norm(own, axis=-1).mean(1) / np.maximum(total, 1e-12), 0.0, 1.0)
+    return np.clip(np.linalg.norm(own_step, axis=-1).mean(1) / np.maximum(total, 1e-12), 0.0, 1.0)
 
 
-def turned(raw: np.ndarray, reach: np.ndarray, own: np.ndarray) -> np.ndarray:
+def turned(raw: np.ndarray, reach: np.ndarray, own: np.ndarray, turn: np.ndarray, own_step: np.ndarray) -> np.ndarray:
     """Frames ``(B, n, V, C)`` (unscaled features) after the last two given ``raw`` ``(B, 2, V, C)``:
-    each vertex's rotation turned by the mean turn (``turn_steps``) ``reach`` ``(B, n)`` times and
-    by its own step ``own * reach`` times (``own`` ``(B,)``), its stretch (channels 3-8) continued
-    ``own * reach`` steps, placement channels (9-) ``reach`` steps."""
+    each vertex's rotation turned by the mean ``turn`` ``(B, 3)`` ``reach`` ``(B, n)`` times and by
+    its ``own_step`` ``(B, V, 3)`` ``own * reach`` times (``own`` ``(B,)``; both from ``turn_steps``),
+    its stretch (channels 3-8) continued ``own * reach`` steps, placement channels (9-) ``reach`` steps."""
     from scipy.spatial.transform import Rotation
 
     b, _, v, _ = raw.shape
     n = reach.shape[1]
-    turn, own_step, _ = turn_steps(raw)
     own_reach = (own[:, None] * reach)[:, :, None, None]  # (B, n, 1, 1)
     velocity = raw[:, 1:2] - raw[:, 0:1]
     out = raw[:, 1:2] + reach[:, :, None, None] * velocity  # every channel continued, then rotations and stretch replaced
@@ -94,12 +93,12 @@ def rule_frames(model, given: np.ndarray) -> dict[str, np.ndarray]:
     """``{rule: (B, H, V, C)}`` scaled features of each fallback after ``given`` ``(B, 3, V, C)``."""
     from meshseq import novelty
 
-    decay = novelty.own_decay(given)
-    reach = np.cumsum(decay[:, None] ** np.arange(HORIZON)[None], axis=1)
+    reach = novelty.fallback_reach(given, HORIZON)
     raw = model.scaling.invert(given[:, -2:].astype(np.float64))
+    turn, own_step, steps = turn_steps(raw)
     out = {"fallback": novelty.fallback(given, HORIZON)}
-    for rule, own in (("rigid turn", np.zeros(len(given))), ("turn + own share", turn_share(raw))):
-        out[rule] = model.scaling.apply(turned(raw, reach, own)).astype(given.dtype)
+    for rule, own in (("rigid turn", np.zeros(len(given))), ("turn + own share", turn_share(own_step, steps))):
+        out[rule] = model.scaling.apply(turned(raw, reach, own, turn, own_step)).astype(given.dtype)
     return out
 
 

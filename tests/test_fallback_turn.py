@@ -30,9 +30,10 @@ def test_a_mesh_that_only_turns_is_turned_on_with_its_shape_kept():
     stretch = rng.normal(0, 0.1, (6, 6))
     q0, step = Rotation.from_rotvec([0.3, -0.2, 0.1]), Rotation.from_rotvec([0.0, 0.15, 0.05])
     raw = _frames([q0 * own, step * q0 * own], stretch)
-    assert ft.turn_share(raw)[0] < 1e-6
+    turn, own_step, steps = ft.turn_steps(raw)
+    assert ft.turn_share(own_step, steps)[0] < 1e-6
     reach = np.array([[1.0, 2.5]])
-    out = ft.turned(raw, reach, np.ones(1))  # with its own steps in full: the same, they are nil
+    out = ft.turned(raw, reach, np.ones(1), turn, own_step)  # with its own steps in full: the same, they are nil
     for k, r in enumerate(reach[0]):
         want = Rotation.from_rotvec(r * step.as_rotvec()) * step * q0 * own
         got = Rotation.from_rotvec(out[0, k, :, :3])
@@ -48,14 +49,14 @@ def test_a_mesh_whose_vertices_turn_apart_continues_each_vertex_and_the_rigid_tu
     steps = Rotation.from_rotvec(steps.as_rotvec() - steps.as_rotvec().mean(0))  # no common turn, about
     stretch0, stretch1 = rng.normal(0, 0.1, (8, 6)), rng.normal(0, 0.1, (8, 6))
     raw = np.concatenate([_frames([base], stretch0), _frames([steps * base], stretch1)], axis=1)
-    assert ft.turn_share(raw)[0] > 0.9
-    held = ft.turned(raw, np.array([[1.0, 2.0]]), np.zeros(1))
-    turn, _, _ = ft.turn_steps(raw)
+    turn, own_step, all_steps = ft.turn_steps(raw)
+    assert ft.turn_share(own_step, all_steps)[0] > 0.9
+    held = ft.turned(raw, np.array([[1.0, 2.0]]), np.zeros(1), turn, own_step)
     for k in range(2):  # the rigid turn: the last shape's stretch, turned by the (small) mean turn
         np.testing.assert_allclose(held[0, k, :, 3:], stretch1, atol=1e-12)
         got = Rotation.from_rotvec(held[0, k, :, :3]) * (steps * base).inv()
         assert np.allclose(got.as_rotvec(), (k + 1) * turn[0], atol=1e-9)
-    moved = ft.turned(raw, np.array([[1.0]]), np.ones(1))
+    moved = ft.turned(raw, np.array([[1.0]]), np.ones(1), turn, own_step)
     np.testing.assert_allclose(moved[0, 0, :, 3:], 2 * stretch1 - stretch0, atol=1e-12)
     want = steps * steps * base
     assert np.allclose((Rotation.from_rotvec(moved[0, 0, :, :3]) * want.inv()).magnitude(), 0.0, atol=1e-9)

@@ -171,6 +171,15 @@ def own_decay(given: np.ndarray, decay: float = FALLBACK_DECAY) -> np.ndarray:
     return np.where((last * before).sum(1) < 0.0, 0.0, d)
 
 
+def fallback_reach(given: np.ndarray, n_frames: int, decay: float = FALLBACK_DECAY,
+                   own_pace: bool = True) -> np.ndarray:
+    """``(B, n)``: how many of the last given step ``fallback`` has added by each frame after given
+    ``(B, U, V, C)``, U >= 2 (a share ``decay``, or with ``own_pace`` ``own_decay``'s, kept each frame)."""
+    x = np.asarray(given)
+    d = own_decay(x, decay) if own_pace else np.full(len(x), float(decay))
+    return np.cumsum(d[:, None] ** np.arange(int(n_frames))[None], axis=1)
+
+
 def fallback(given: np.ndarray, n_frames: int, decay: float = FALLBACK_DECAY, own_pace: bool = True) -> np.ndarray:
     """``(B, n, V, C)`` frames after given ``(B, U, V, C)``: the last held (U = 1), else its
     velocity continued with a share of it kept each frame: ``decay``, or with ``own_pace`` the
@@ -179,8 +188,7 @@ def fallback(given: np.ndarray, n_frames: int, decay: float = FALLBACK_DECAY, ow
     last = x[:, -1:]
     if x.shape[1] < 2:
         return np.repeat(last, int(n_frames), axis=1)
-    d = own_decay(x, decay) if own_pace else np.full(len(x), float(decay))
-    reach = np.cumsum(d[:, None] ** np.arange(int(n_frames))[None], axis=1)  # the velocity's summed share (B, n)
+    reach = fallback_reach(x, n_frames, decay, own_pace)
     return last + reach.astype(x.dtype)[:, :, None, None] * (x[:, -1:] - x[:, -2:-1])
 
 
