@@ -168,6 +168,23 @@ def test_damaged_checkpoint_is_detected(tmp_path, limb):
         meshseq.load(tmp_path / "nothing")
 
 
+def test_latest_meta_reads_the_newest_readable_model_json_without_the_weights(tmp_path, limb):
+    _, data = limb
+    run = tmp_path / "run"
+    with pytest.raises(MeshseqError, match="no checkpoint"):
+        ckpt.latest_meta(run)
+    train(data, run, TrainConfig(iterations=2, window=6, batch=2, checkpoint_every=1), SMALL, device="cpu",
+          progress=False, log=None)
+    newest = run / "checkpoints" / "00000002"
+    (newest / "model.safetensors").write_bytes(b"not weights")  # weights are not read
+    assert ckpt.latest_meta(run)["iteration"] == 2
+    (newest / "model.json").write_text("{")  # a model.json that does not read is skipped
+    assert ckpt.latest_meta(run)["iteration"] == 1
+    (run / "checkpoints" / "00000001" / "model.json").write_text("[]")
+    with pytest.raises(MeshseqError, match="every checkpoint is damaged"):
+        ckpt.latest_meta(run)
+
+
 KILL_SCRIPT = """
 import sys, torch
 torch.set_num_threads(1)

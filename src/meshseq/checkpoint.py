@@ -315,6 +315,27 @@ def load_latest(run_dir: str | os.PathLike, with_state: bool = False, backend: s
     raise MeshseqError(f"{run_dir}: every checkpoint is damaged (the newest: {problems[0]})")
 
 
+def latest_meta(run_dir: str | os.PathLike) -> dict:
+    """The checked model.json of a run's newest checkpoint whose model.json reads (the weights are not
+    read: every checkpoint of a run stores the same model, mesh and feature options, so this is what
+    a run is, not which checkpoint ``load_latest`` would pick). MeshseqError if there is none."""
+    from meshseq import checkpoint_schema as schema
+
+    folders = list_checkpoints(run_dir)
+    if not folders:
+        raise MeshseqError(f"{run_dir}: no checkpoint in {checkpoint_root(run_dir)}")
+    problems = []
+    for folder in reversed(folders):
+        try:
+            meta = _read_json(folder / MODEL_META)
+            schema.check_model_meta(meta, folder / MODEL_META, int(folder.name))
+        except MeshseqError as err:
+            problems.append(err)
+            continue
+        return meta
+    raise MeshseqError(f"{run_dir}: every checkpoint is damaged (the newest: {problems[0]})")
+
+
 def best_folder(run_dir: str | os.PathLike) -> Path:
     """Where a run keeps its best checkpoint on its validation block (it may not exist)."""
     return checkpoint_root(run_dir) / BEST

@@ -18,7 +18,7 @@ from meshseq.training.loop import COLLAPSE_AFTER, collapse_warning, train, valid
 from meshseq.training.optim import (autocast, average_decay, clip_threshold, copy_weights, divergence, fused_adam,
                                     grad_norm, parameter_groups, scale_gradients, update_average, weights_swapped)
 from meshseq.training.run import (METRIC_FIELDS, Dist, Metrics, freeze_setup_objects, init_distributed,
-                                  remove_run_outputs, resume_point)
+                                  remove_run_outputs, resume_meta, resume_point)
 
 __all__ = [
     "COLLAPSE_AFTER", "Dist", "EMA_WARMUP", "FC_LRS", "FC_REFERENCE_FAN_IN", "FEEDBACK_GRADS", "GRAD_CLIP_HISTORY",
@@ -29,6 +29,6 @@ __all__ = [
     "fused_adam", "gather_frames", "grad_norm", "has_backward_chains", "init_distributed", "is_positive_integer",
     "kl_divergence", "kl_weight", "latent_health", "latent_spread", "load_training_data", "make_vertex_loss",
     "motion_loss", "output_frame_errors", "parameter_groups", "reconstructed_vertices", "remove_run_outputs",
-    "resolve_device", "resume_point", "scale_gradients", "squared_norm", "step_spread", "train",
+    "resolve_device", "resume_meta", "resume_point", "scale_gradients", "squared_norm", "step_spread", "train",
     "training_windows", "update_average", "validation_scorer", "weights_swapped", "window_losses",
 ]

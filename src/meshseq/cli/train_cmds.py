@@ -74,7 +74,7 @@ def _train(args) -> int:
     from meshseq.errors import MeshseqError
     from meshseq.io import check_writable
     from meshseq.model import ModelConfig
-    from meshseq.train import load_training_data, resume_point, train
+    from meshseq.train import load_training_data, resume_meta, train
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -93,7 +93,7 @@ def _train(args) -> int:
     ModelConfig.check_options(model_options)  # every option is checked before the data is loaded
     consistency, placement = config.consistency, config.placement
     if args.resume and not args.force:  # features as the run was trained on (its stored options)
-        consistency, placement = feature_options(resume_point(out).meta)
+        consistency, placement = feature_options(resume_meta(out))
     data = load_training_data(args.data, consistency=consistency, placement=placement)
     created = not out.exists()
     try:

@@ -163,9 +163,22 @@ def resume_point(run_dir: Path) -> "ckpt.Loaded":
     try:
         return ckpt.load_latest(run_dir, with_state=True)
     except MeshseqError as err:
-        hint = ("leave out --resume to start a new run" if not ckpt.list_checkpoints(run_dir)
-                else "use --force without --resume to start over")
-        raise MeshseqError(f"--resume: {err}; {hint}") from None
+        raise _resume_error(run_dir, err) from None
+
+
+def resume_meta(run_dir: Path) -> dict:
+    """model.json of the run ``--resume`` continues (``checkpoint.latest_meta``: its model and feature
+    options, the weights not read); the same MeshseqError as ``resume_point`` if there is none."""
+    try:
+        return ckpt.latest_meta(run_dir)
+    except MeshseqError as err:
+        raise _resume_error(run_dir, err) from None
+
+
+def _resume_error(run_dir: Path, err: MeshseqError) -> MeshseqError:
+    hint = ("leave out --resume to start a new run" if not ckpt.list_checkpoints(run_dir)
+            else "use --force without --resume to start over")
+    return MeshseqError(f"--resume: {err}; {hint}")
 
 
 def freeze_setup_objects() -> bool:
