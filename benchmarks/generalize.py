@@ -55,12 +55,13 @@ def scored_pace() -> str:
     return PACES[0]
 
 
-def record_label(rec: dict) -> str:
+def record_label(rec: dict, block: str = "") -> str:
     """``"bodies, 2000 it"``, with the seed where not 0, the pace and trust rules where not today's,
-    and the rotation consistency where not today's default and it changes the features."""
+    and the rotation consistency where not today's default and it changes the features; ``block``
+    (``"@ 0.5"``, ``"unseen sequence"``) follows the set's name."""
     seed = rec["train"].get("seed", 0)
     pace, trust = rec.get("pace", PACE_UNNAMED), rec.get("trust", TRUST_UNNAMED)
-    return (f"{rec['set']}, {rec['iteration']} it{f', seed {seed}' if seed else ''}"
+    return (f"{rec['set']}{f' {block}' if block else ''}, {rec['iteration']} it{f', seed {seed}' if seed else ''}"
             f"{f', pace {pace}' if pace != scored_pace() else ''}{f', trust {trust}' if trust != TRUST else ''}"
             f"{f', {logs} logs' if (logs := record_consistency(rec)) else ''}")
 
@@ -104,25 +105,28 @@ def novelty(train_feats: np.ndarray, block_feats: np.ndarray) -> float:
 
 
 def score_block(model, vae, verts: np.ndarray, feats: np.ndarray, train_feats: np.ndarray, train_level: float,
-                lo: int, hi: int) -> dict:
+                lo: int, hi: int, guard: bool = True) -> dict:
     """Every figure of one held-out block ``[lo, hi)`` of one sequence; ``train_level``: the training
-    frames' mean vertex motion per frame (``training_level``)."""
+    frames' mean vertex motion per frame (``training_level``); ``guard``: ours' predictions with the
+    novelty guard (the benchmark's)."""
     from meshseq.evaluate import completion_errors
     from meshseq.pace import step_levels
     from meshseq.synthesize import CONTEXT
 
     out = {"frames": [int(lo), int(hi)], "novelty": novelty(train_feats, feats[lo:hi]),
            "motion_level": float(np.mean(step_levels(verts[lo:hi])) / max(train_level, 1e-12)),
-           "prediction": prediction_scores(model, vae, verts, feats, lo, hi, PREDICTION), "completion": {}}
+           "prediction": prediction_scores(model, vae, verts, feats, lo, hi, PREDICTION, guard), "completion": {}}
     gaps = [g for g in GAPS if hi - lo >= g + 2]
     out["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1,
                                           context=CONTEXT)
-    out.update(motion_scores(model, verts, feats, train_level, lo, hi))
+    out.update(motion_scores(model, verts, feats, train_level, lo, hi, guard))
     return out
 
 
-def prediction_scores(model, vae, verts: np.ndarray, feats: np.ndarray, lo: int, hi: int, methods) -> dict:
-    """``{"u1" / "u3": {method: {"centroid" / "rigid": {h: error}}}}`` of one block ``[lo, hi)``."""
+def prediction_scores(model, vae, verts: np.ndarray, feats: np.ndarray, lo: int, hi: int, methods,
+                      guard: bool = True) -> dict:
+    """``{"u1" / "u3": {method: {"centroid" / "rigid": {h: error}}}}`` of one block ``[lo, hi)``
+    (``guard``: ours with the novelty guard)."""
     from meshseq.evaluate import prediction_errors, prediction_starts
 
     out = {}
@@ -130,26 +134,28 @@ def prediction_scores(model, vae, verts: np.ndarray, feats: np.ndarray, lo: int,
         horizons = [h for h in HORIZONS if len(prediction_starts(lo, hi, u, h))]  # a short block scores fewer
         if not horizons:
             continue
-        res = prediction_errors(model, verts, feats, lo, hi, u, horizons, list(methods), vae=vae)
+        res = prediction_errors(model, verts, feats, lo, hi, u, horizons, list(methods), vae=vae, guard=guard)
         out[f"u{u}"] = {m: {k: r[k] for k in ("centroid", "rigid")} for m, r in res.items()}
     return out
 
 
-def motion_scores(model, verts: np.ndarray, feats: np.ndarray, train_level: float, lo: int, hi: int) -> dict:
+def motion_scores(model, verts: np.ndarray, feats: np.ndarray, train_level: float, lo: int, hi: int,
+                  guard: bool = True) -> dict:
     """``motion_50`` (the feature change of 50 generated frames over the truth's) and ``pace``
-    (``pace.pace_table``, where the block is long enough) of one block ``[lo, hi)``."""
+    (``pace.pace_table``, where the block is long enough) of one block ``[lo, hi)`` (``guard``: ours
+    with the novelty guard)."""
     from meshseq.evaluate import feature_change, prediction_starts
     from meshseq.pace import pace_levels, pace_table
     from meshseq.plots import feature_change as relative_change
 
     out = {}
     starts = prediction_starts(lo, hi, 1, 1)
-    fc = feature_change(model, feats, starts[:: max(1, len(starts) // 8)], 1, 50, ["ours"])
+    fc = feature_change(model, feats, starts[:: max(1, len(starts) // 8)], 1, 50, ["ours"], guard=guard)
     truth = float(relative_change(model.scaling.invert(feats[lo:hi].astype(np.float64))).mean())
     out["motion_50"] = float(np.mean(fc["ours"]) / max(truth, 1e-12))
     starts3 = prediction_starts(lo, hi, 3, 15)
     if len(starts3):
-        levels = pace_levels(model, verts, feats, starts3, 3, 15)
+        levels = pace_levels(model, verts, feats, starts3, 3, 15, guard=guard)
         out["pace"] = pace_table(levels, train_level)
     return out
 
@@ -175,7 +181,6 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     from meshseq import checkpoint as ckpt
     from meshseq.checkpoint_schema import feature_options
     from meshseq.data.windows import Split
-    from meshseq.io import load_sequence
     from meshseq.train import TrainConfig, load_training_data, train
 
     tag = f"{name}@{holdout_at}"
@@ -193,7 +198,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     resume = bool(ckpt.list_checkpoints(run))  # a run stopped before its first checkpoint starts over
     consistency, placement = config.consistency, config.placement
     if resume:  # features as the run was trained on (its stored options)
-        consistency, placement = feature_options(ckpt.load_latest(run).meta)
+        consistency, placement = feature_options(ckpt.latest_meta(run))
     data = load_training_data(specs, consistency=consistency, placement=placement)
     t0 = time.perf_counter()
     train(data, run, config, device=args.device, resume=resume, force=not resume, progress=not args.quiet)
@@ -202,15 +207,9 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
     reference = ensure_novelty(model, specs, splits)
     train_feats = np.concatenate([model.scaling.apply(f)[a:b] for f, s in zip(data.features, splits) for a, b in s.train])
-    vae = train_vae_baseline(model, train_feats)
-    train_level = training_level(specs, splits)
+    held = [(spec, *(splits[index].heldout if index is not None else (None, None))) for index, spec in scored]
     blocks = []
-    for index, spec in scored:
-        verts = load_sequence(spec).vertices.astype(np.float64)
-        feats = model.features(verts)
-        lo, hi = (splits[index].heldout if index is not None else (0, len(verts)))
-        block = score_block(model, vae, verts, feats, train_feats, train_level, lo, hi)
-        block["sequence"] = spec
+    for block in score_blocks(model, specs, splits, train_feats, held):
         blocks.append(block)
         print(line(tag, block), flush=True)
     out = {"set": name, "holdout_at": holdout_at, "iteration": model.iteration, "seconds_training": seconds,
@@ -221,6 +220,24 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
         out["held_out"] = held_out
     record.write_text(json.dumps(out, indent=1))
     return out
+
+
+def score_blocks(model, specs: list[str], splits, train_feats: np.ndarray, blocks, guard: bool = True):
+    """Every figure of each held-out block ``(spec, lo, hi)`` (``None`` bounds: the whole sequence),
+    scored as ``score_block`` scores it (``guard`` too), with the sequence named; ``train_feats``
+    ``(T, V, C)``: the training frames of ``specs`` (split by ``splits``), which the VAE baseline is
+    trained on first. A generator: each block is yielded when scored."""
+    from meshseq.io import load_sequence
+
+    vae = train_vae_baseline(model, train_feats)
+    level = training_level(specs, splits)
+    for spec, lo, hi in blocks:
+        verts = load_sequence(spec).vertices.astype(np.float64)
+        feats = model.features(verts)
+        block = score_block(model, vae, verts, feats, train_feats, level, 0 if lo is None else lo,
+                            len(verts) if hi is None else hi, guard)
+        block["sequence"] = spec
+        yield block
 
 
 def recipe_changes(changes: list[str]) -> dict:
@@ -371,8 +388,7 @@ def table(files: list[str]) -> str:
             pred = [ratio_cell(prediction_ratio(b, *cell)) for cell in cells]
             comp = [f"{completion_ratio(b, g):.2f}" if g in b["completion"] else "-" for g in ("5", "10", "20", "30")]
             block = f"@ {rec['holdout_at']}" if single_capture(rec) else "unseen sequence"
-            name, _, rest = record_label(rec).partition(", ")
-            rows.append(f"| {name} {block}, {rest} | "
+            rows.append(f"| {record_label(rec, block)} | "
                         f"{Path(b['sequence']).name} | "
                         f"{b['novelty']:.1f} | "
                         f"{b['motion_level']:.2f} | {' | '.join(pred)} | {' | '.join(comp)} | {b['motion_50']:.2f} |")
@@ -461,10 +477,8 @@ def targets_table(files: list[str]) -> str:
     rows = ["| set, iterations | " + " | ".join(TARGETS) + " |", "|" + "---|" * (len(TARGETS) + 1)]
     for f in files:
         rec = json.loads(Path(f).read_text())
-        label = record_label(rec)
-        if single_capture(rec) and rec["holdout_at"] != "end":  # a block inside the capture
-            name, _, rest = label.partition(", ")
-            label = f"{name} @ {rec['holdout_at']}, {rest}"
+        inside = single_capture(rec) and rec["holdout_at"] != "end"  # a block inside the capture
+        label = record_label(rec, f"@ {rec['holdout_at']}" if inside else "")
         rows.append(f"| {label} | " + " | ".join(record_targets(rec)) + " |")
     return "\n".join(rows)
 

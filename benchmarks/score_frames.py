@@ -8,6 +8,7 @@ the generalisation benchmark leaves unmet").
 prints the benchmark's line for frames ``[FIRST, STOP)`` of SPEC scored with RUN (its novelty
 against RUN's training frames, ours over the best baseline, ours over the better interpolation,
 the motion of 50 generated frames), and with ``-o`` writes the block as the records hold it.
+``--guard off`` scores ours' predictions without the novelty guard (the roll-out it replaces).
 """
 
 from __future__ import annotations
@@ -23,9 +24,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import generalize  # noqa: E402  (a sibling script)
 
 
-def score_frames(run: str, spec: str, first: int, stop: int) -> dict:
+def score_frames(run: str, spec: str, first: int, stop: int, guard: bool = True) -> dict:
     """The benchmark's block ``[first, stop)`` of ``spec`` scored with the run in ``run``, against
-    the frames that run trained on (every sequence it trained on must be ``spec``)."""
+    the frames that run trained on (every sequence it trained on must be ``spec``); ``guard``: ours'
+    predictions with the novelty guard."""
     import meshseq
     from meshseq.data.windows import Split
     from meshseq.io import load_sequence
@@ -40,11 +42,7 @@ def score_frames(run: str, spec: str, first: int, stop: int) -> dict:
     feats = model.features(verts)
     generalize.ensure_novelty(model, [spec], splits)
     train_feats = np.concatenate([feats[a:b] for a, b in splits[0].train])
-    vae = generalize.train_vae_baseline(model, train_feats)
-    level = generalize.training_level([spec], splits)
-    block = generalize.score_block(model, vae, verts, feats, train_feats, level, first, stop)
-    block["sequence"] = spec
-    return block
+    return next(generalize.score_blocks(model, [spec], splits, train_feats, [(spec, first, stop)], guard))
 
 
 def main() -> None:
@@ -54,11 +52,14 @@ def main() -> None:
     p.add_argument("first", type=int, help="the block's first frame")
     p.add_argument("stop", type=int, help="the frame after its last")
     p.add_argument("-o", "--out", help="write the scored block as JSON")
+    p.add_argument("--guard", choices=("on", "off"), default="on", help="ours' predictions with the novelty guard "
+                                                                      "(the benchmark's) or without")
     args = p.parse_args()
     shared = generalize.SHARED / args.spec
     spec = str(shared) if shared.is_file() else args.spec
-    block = score_frames(args.run, spec, args.first, args.stop)
-    print(generalize.line(f"{Path(args.run).name} frames {args.first}-{args.stop}", block), flush=True)
+    block = score_frames(args.run, spec, args.first, args.stop, args.guard == "on")
+    guard = "" if args.guard == "on" else ", guard off"
+    print(generalize.line(f"{Path(args.run).name} frames {args.first}-{args.stop}{guard}", block), flush=True)
     if args.out:
         Path(args.out).write_text(json.dumps(block, indent=1))
 

@@ -23,13 +23,14 @@ def step_levels(vertices: np.ndarray) -> np.ndarray:
 
 
 def pace_levels(model, vertices: np.ndarray, feats: np.ndarray, starts: np.ndarray, given: int = 3,
-                horizon: int = 15, hold: bool = False) -> dict:
+                horizon: int = 15, hold: bool = False, guard: bool = True) -> dict:
     """Motion levels around predictions from ``given`` frames at each start.
 
     Args:
         model: ``meshseq.api.Model``; ``vertices`` ``(T, V, 3)`` and ``feats`` ``(T, V, 9)`` (scaled)
             one sequence; ``starts`` ``(B,)`` first given frames (``s + given + horizon <= T``).
         hold: give the frame ``s`` ``given`` times instead (a pose held still).
+        guard: predict with the novelty guard (``synthesize.predict``'s).
     Returns ``{"given", "truth", "ours"}``, each ``(B,)``: the given frames' level (0 for a hold),
     the truth's over the ``horizon`` frames after them (for a hold: the frames after ``s``), and
     the prediction's (from the last given frame's reconstruction through the predicted frames).
@@ -38,7 +39,7 @@ def pace_levels(model, vertices: np.ndarray, feats: np.ndarray, starts: np.ndarr
 
     starts = np.asarray(starts)
     idx = starts[:, None] + (np.zeros(given, int) if hold else np.arange(given))[None, :]
-    pred = predict(model, feats[idx], horizon)  # (B, H, V, 9)
+    pred = predict(model, feats[idx], horizon, guard=guard)  # (B, H, V, 9)
     last = feats[idx[:, -1]][:, None]
     frames = np.concatenate([last, pred], axis=1)
     recon = model.vertices(frames.reshape(-1, *frames.shape[2:])).reshape(*frames.shape[:2], -1, 3)
