@@ -10,8 +10,9 @@ in-between error of interpolating the ACAP features (reconstructed through the k
 one the context picks, and the better of the two per gap (an oracle), each over the better of the
 two means (the benchmark's reference). The context pick: the same two interpolations over the
 frames given before key a and after key b (windows of ``min(gap, CONTEXT - 1)`` in-between frames
-ending on the keys), the one with the smaller error there. RUN only supplies the mesh and the
-feature scaling: the network is not used, so a run of one iteration serves.
+ending on the keys), the one with the smaller error there. ``--blend W,...`` adds blends of the
+two, ``(1 - W)`` features + ``W`` vertices. RUN only supplies the mesh and the feature scaling: the
+network is not used, so a run of one iteration serves.
 """
 
 from __future__ import annotations
@@ -54,9 +55,10 @@ def context_errors(model, verts: np.ndarray, feats: np.ndarray, a: int, b: int, 
     return total
 
 
-def gap_table(model, verts: np.ndarray, gap: int) -> np.ndarray | None:
-    """``(5,)`` mean in-between error of each ``COLUMNS`` entry over the better of features and
-    vertices, over 12 gaps of ``gap`` frames; None where the sequence is too short."""
+def gap_table(model, verts: np.ndarray, gap: int, blends: tuple[float, ...] = ()) -> np.ndarray | None:
+    """``(5 + len(blends),)`` mean in-between error of each ``COLUMNS`` entry, then of each blend
+    ``(1 - w)`` features + ``w`` vertices, over the better of features and vertices, over 12 gaps of
+    ``gap`` frames; None where the sequence is too short."""
     from meshseq.align import per_vertex_error
 
     starts = gap_starts(len(verts), gap)
@@ -71,7 +73,8 @@ def gap_table(model, verts: np.ndarray, gap: int) -> np.ndarray | None:
         e_f, e_v = per_vertex_error(in_f, truth).mean(), per_vertex_error(in_v, truth).mean()
         pick = context_errors(model, verts, feats, a, b, gap)
         rows.append([e_f, e_v, per_vertex_error(0.5 * (in_f + in_v), truth).mean(),
-                     e_v if pick[1] < pick[0] else e_f, min(e_f, e_v)])
+                     e_v if pick[1] < pick[0] else e_f, min(e_f, e_v)]
+                    + [per_vertex_error((1 - w) * in_f + w * in_v, truth).mean() for w in blends])
     means = np.mean(rows, axis=0)
     return means / min(means[0], means[1])
 
@@ -83,11 +86,14 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("run", help="a trained run (its mesh and feature scaling)")
     p.add_argument("specs", nargs="+", help="sequences, each optionally SPEC@FIRST,LAST")
+    p.add_argument("--blend", default="", help="blend weights W of the vertices, comma-separated")
     args = p.parse_args()
     model = meshseq.load(args.run)
+    blends = tuple(float(w) for w in args.blend.split(",") if w)
+    columns = COLUMNS + tuple(f"blend {w:g}" for w in blends)
     per_gap: dict[int, list[np.ndarray]] = {g: [] for g in GAPS}
     print("over the better of features and vertices, at gaps " + " / ".join(map(str, GAPS)) + ": "
-          + ", ".join(COLUMNS))
+          + ", ".join(columns))
     for spec in args.specs:
         path, _, frames = spec.partition("@")
         verts = load_sequence(path).vertices.astype(np.float64)
@@ -96,7 +102,7 @@ def main() -> None:
             verts = verts[first:last]
         cells = []
         for gap in GAPS:
-            row = gap_table(model, verts, gap)
+            row = gap_table(model, verts, gap, blends)
             if row is not None:
                 per_gap[gap].append(row)
                 cells.append(f"gap {gap}: " + " ".join(f"{x:.3f}" for x in row))
@@ -105,7 +111,7 @@ def main() -> None:
         if rows:
             r = np.array(rows)
             print(f"gap {gap}, mean (max) over {len(r)}: "
-                  + "  ".join(f"{c} {m:.3f} ({x:.3f})" for c, m, x in zip(COLUMNS, r.mean(0), r.max(0))))
+                  + "  ".join(f"{c} {m:.3f} ({x:.3f})" for c, m, x in zip(columns, r.mean(0), r.max(0))))
 
 
 if __name__ == "__main__":

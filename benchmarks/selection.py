@@ -1,12 +1,14 @@
 """A run's prediction and completion on selection data (sequences no evaluation block holds), over
 the trivial answers: what a controlled run is compared by before anything is adopted.
 
-    python benchmarks/selection.py RUN SPEC ... [--given 1,3] [--pace warm-up] [--carry 0] [--prediction-only]
+    python benchmarks/selection.py RUN SPEC ... [--given 1,3] [--pace warm-up] [--carry 0] [--trust pace=0.5]
+        [--prediction-only]
 
 Per sequence: ours (``predict``'s default, or its ``--pace`` / ``--carry``) over the better of zero velocity and
 linear ACAP extrapolation at h5 / h10 / h15 with 1 and 3 given frames (``--given``; starts every 4 frames over the whole
 sequence, centroid-aligned), and ours (``complete``'s default, 7 frames on both sides) over the
-better linear interpolation at gaps of 5 / 10 / 20 / 30 (12 gaps each); then the means and maxima.
+better linear interpolation at gaps of 5 / 10 / 20 / 30 (12 gaps each; with ``--trust``, completion
+trusts the chains by another rule of ``completion_trust.py``); then the means and maxima.
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from replay import ratios  # noqa: E402  (a sibling script)
+from completion_trust import trust_rule, trusting  # noqa: E402  (sibling scripts)
+from replay import ratios  # noqa: E402
 
 GAPS = (5, 10, 20, 30)
 
@@ -43,8 +46,11 @@ def main() -> None:
     p.add_argument("--given", default="1,3", help="given frames of the predictions scored, comma-separated")
     p.add_argument("--pace", default=None, help="predict's pace rule (default: its default)")
     p.add_argument("--carry", type=float, default=None, help="predict's carried share (default: its default)")
+    p.add_argument("--trust", default="default", help="completion's trust rule (completion_trust.py's: default, "
+                                                      "always, never, pace=P)")
     p.add_argument("--prediction-only", action="store_true", help="leave completion out")
     args = p.parse_args()
+    trust = trust_rule(args.trust)
     model = meshseq.load(args.run)
     given = [int(u) for u in args.given.split(",")]
     rows: dict[str, list[np.ndarray]] = {f"u{u}": [] for u in given}
@@ -57,7 +63,8 @@ def main() -> None:
         for u in given:
             rows[f"u{u}"].append(ratios(model, verts, feats, u, 4, [1.0], [], args.pace, args.carry)["tempo 1"])
         if not args.prediction_only:
-            rows["gaps"].append(completion_ratios(model, verts, feats))
+            with trusting(trust):
+                rows["gaps"].append(completion_ratios(model, verts, feats))
         cells = " | ".join(f"{k} {fmt(f'{x:.2f}' for x in v[-1])}" for k, v in rows.items())
         print(f"{spec.rsplit(':', 1)[-1]}  {cells}", flush=True)
     for k, v in rows.items():

@@ -325,6 +325,59 @@ def test_context_trust_needs_familiar_keys_and_frames_at_the_models_pace(model, 
     np.testing.assert_array_equal(side_trust(no_steps, paths), context_pace(model, paths) >= PACE_TRUST)
 
 
+def test_completion_trust_benchmark_scores_the_default_as_the_benchmark_and_puts_the_rule_back(model, trained):
+    """benchmarks/completion_trust.py: its ``default`` is the benchmark's own completion figures; a
+    rule holds only inside ``trusting`` (also when scoring fails); ``always`` trusts at least where
+    the default does and changes ours where the default does not trust every pair."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    import meshseq.synthesize as syn
+    from meshseq.evaluate import completion_errors
+
+    bench = Path(__file__).resolve().parent.parent / "benchmarks"
+    sys.path.insert(0, str(bench))
+    spec = importlib.util.spec_from_file_location("completion_trust_benchmark", bench / "completion_trust.py")
+    ct = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ct)
+    v = trained[2].vertices.astype(np.float64)
+    f = model.features(v)
+    own = completion_errors(model, v, f, 10, 40, [5, 10, 20], ["ours", "linear", "linear_vertices"], samples=1,
+                            context=syn.CONTEXT)
+    assert ct.block_errors(model, v, f, 10, 40, ct.trust_rule("default")) == own
+    never = ct.block_errors(model, v, f, 10, 40, ct.trust_rule("never"))
+    always = ct.block_errors(model, v, f, 10, 40, ct.trust_rule("always"))
+    assert never != always and syn.context_trust is ct.trust_rule("default")
+    before, key_a, key_b, after = f[None, 3:10], f[None, 10], f[None, 21], f[None, 22:29]
+    assert ct.trust_rule("pace=0")(model, before, key_a, after, key_b) >= syn.context_trust(model, before, key_a,
+                                                                                          after, key_b)
+    with pytest.raises(ZeroDivisionError), ct.trusting(ct.trust_rule("never")):
+        1 / 0
+    assert syn.context_trust is ct.trust_rule("default")
+    with pytest.raises(SystemExit, match="'pace=slow'"):
+        ct.trust_rule("pace=slow")
+
+
+def test_pace_levels_are_the_guarded_prediction_unless_the_guard_is_off(model, trained):
+    """``pace.pace_levels``: a pose held still has no given motion; on frames far from training the
+    guard replaces the roll-out, and ``guard=False`` measures the roll-out, as ``predict`` gives it."""
+    from meshseq.pace import pace_levels, step_levels
+    from meshseq.synthesize import predict
+
+    v = trained[2].vertices.astype(np.float64)
+    f = model.features(v)
+    starts = np.array([5, 20, 40])
+    assert (pace_levels(model, v, f, starts, 3, 10, hold=True)["given"] == 0).all()
+    far = 3.0 * f  # poses the model never saw: the guard acts
+    levels = {guard: pace_levels(model, v, far, starts, 3, 10, guard=guard)["ours"] for guard in (True, False)}
+    assert not np.allclose(levels[True], levels[False])
+    idx = starts[:, None] + np.arange(3)
+    frames = np.concatenate([far[idx[:, -1]][:, None], predict(model, far[idx], 10, guard=False)], 1)
+    rolled = model.vertices(frames.reshape(-1, *frames.shape[2:])).reshape(*frames.shape[:2], -1, 3)
+    np.testing.assert_allclose(levels[False], step_levels(rolled).mean(-1), rtol=1e-6)
+
+
 def test_context_frames_warm_the_chains_and_trusted_pairs_keep_the_corrected_join(model, trained):
     from meshseq.synthesize import complete, join_chains, warm_chain_states
 
