@@ -299,20 +299,10 @@ def load_latest(run_dir: str | os.PathLike, with_state: bool = False, backend: s
 
     MeshseqError if the run has no checkpoint, or none is usable (naming the newest's problem).
     """
-    folders = list_checkpoints(run_dir)
-    if not folders:
-        raise MeshseqError(f"{run_dir}: no checkpoint in {checkpoint_root(run_dir)}")
-    problems = []
-    for folder in reversed(folders):
-        try:
-            loaded = load_folder(folder, with_state, backend)
-        except MeshseqError as err:
-            problems.append(err)
-            continue
-        for err in problems:
-            warnings.warn(f"damaged checkpoint skipped: {err}", MeshseqWarning)
-        return loaded
-    raise MeshseqError(f"{run_dir}: every checkpoint is damaged (the newest: {problems[0]})")
+    loaded, skipped = _newest(run_dir, lambda folder: load_folder(folder, with_state, backend))
+    for err in skipped:
+        warnings.warn(f"damaged checkpoint skipped: {err}", MeshseqWarning)
+    return loaded
 
 
 def latest_meta(run_dir: str | os.PathLike) -> dict:
@@ -321,18 +311,27 @@ def latest_meta(run_dir: str | os.PathLike) -> dict:
     a run is, not which checkpoint ``load_latest`` would pick). MeshseqError if there is none."""
     from meshseq import checkpoint_schema as schema
 
+    def read(folder: Path) -> dict:
+        meta = _read_json(folder / MODEL_META)
+        schema.check_model_meta(meta, folder / MODEL_META, int(folder.name))
+        return meta
+
+    return _newest(run_dir, read)[0]
+
+
+def _newest(run_dir: str | os.PathLike, read):
+    """``(read(folder), problems)``: ``read`` of a run's newest checkpoint folder it succeeds on, and
+    the MeshseqErrors of the newer ones it failed on; MeshseqError if the run has no checkpoint or
+    ``read`` fails on every one (naming the newest's problem)."""
     folders = list_checkpoints(run_dir)
     if not folders:
         raise MeshseqError(f"{run_dir}: no checkpoint in {checkpoint_root(run_dir)}")
     problems = []
     for folder in reversed(folders):
         try:
-            meta = _read_json(folder / MODEL_META)
-            schema.check_model_meta(meta, folder / MODEL_META, int(folder.name))
+            return read(folder), problems
         except MeshseqError as err:
             problems.append(err)
-            continue
-        return meta
     raise MeshseqError(f"{run_dir}: every checkpoint is damaged (the newest: {problems[0]})")
 
 
