@@ -1,12 +1,13 @@
 """Where a multi-part mesh's prediction error lies: on its largest part (the body) or on the rest
 (eyes, straps, props) (method.md, "What the generalisation benchmark leaves unmet").
 
-    python benchmarks/part_errors.py RUN SPEC ... [--given 3] [--every 4]
+    python benchmarks/part_errors.py RUN SPEC ... [--given 3] [--every 4] [--rigid]
 
-For each sequence: ours (guarded, the default, and ``--guard off``) and zero velocity, the mean
-centroid-aligned error x 1e-4 at h5 / h10 / h15 over the vertices of the largest part and over
-the others (the whole mesh aligned once, as the benchmark scores it), starts every ``--every``
-frames over the whole sequence. A single-part mesh prints the body alone.
+For each sequence: ours (guarded, the default; ``--guard off``; the paper's roll-out, ``--guard off
+--pace model --carry 0``) and zero velocity, the mean centroid-aligned (``--rigid``: also
+rotation-aligned) error x 1e-4 at h5 / h10 / h15 over the vertices of the largest part and over the
+others (the whole mesh aligned once, as the benchmark scores it), starts every ``--every`` frames
+over the whole sequence. A single-part mesh prints the body alone.
 """
 
 from __future__ import annotations
@@ -21,12 +22,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from novelty_guard import CELLS, H as HORIZON, prediction_windows  # noqa: E402  (a sibling script)
 
 
-def part_errors(pred: np.ndarray, truth: np.ndarray, masks: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """``{part: (3,)}``: mean centroid-aligned error at h5 / h10 / h15 over each ``(V,)`` bool mask's
-    vertices of predictions ``pred`` ``(B, H, V, 3)`` against ``truth`` (same shape)."""
+def part_errors(pred: np.ndarray, truth: np.ndarray, masks: dict[str, np.ndarray],
+                rigid: bool = False) -> dict[str, np.ndarray]:
+    """``{part: (3,)}``: mean centroid-aligned (``rigid``: also rotation-aligned) error at h5 / h10 /
+    h15 over each ``(V,)`` bool mask's vertices of predictions ``pred`` ``(B, H, V, 3)`` against
+    ``truth`` (same shape)."""
     from meshseq.align import per_vertex_error
 
-    err = per_vertex_error(pred.reshape(-1, *pred.shape[2:]), truth.reshape(-1, *truth.shape[2:]))
+    err = per_vertex_error(pred.reshape(-1, *pred.shape[2:]), truth.reshape(-1, *truth.shape[2:]), rigid=rigid)
     err = err.reshape(*truth.shape[:3])[:, CELLS]  # (B, 3, V)
     return {name: err[..., m].mean(axis=(0, 2)) for name, m in masks.items() if m.any()}
 
@@ -41,17 +44,21 @@ def part_masks(faces: np.ndarray, n_vertices: int) -> dict[str, np.ndarray]:
     return {"body": body, "other parts": ~body}
 
 
-def sequence_errors(model, verts: np.ndarray, faces: np.ndarray, given: int, every: int) -> dict:
-    """``{method: {part: (3,)}}`` for one sequence ``(T, V, 3)``: ours guarded, unguarded, zero velocity."""
+ROLL_OUTS = {"ours": {}, "ours, guard off": {"guard": False},
+             "ours, paper's roll-out": {"guard": False, "pace": "model", "carry": 0.0}}
+
+
+def sequence_errors(model, verts: np.ndarray, faces: np.ndarray, given: int, every: int, rigid: bool = False) -> dict:
+    """``{method: {part: (3,)}}`` for one sequence ``(T, V, 3)``: ours by each of ``ROLL_OUTS``, zero velocity."""
     from meshseq.synthesize import predict
 
     _, x, truth, zero = prediction_windows(verts, model.features(verts), given, every)
     masks = part_masks(faces, verts.shape[1])
     out = {}
-    for name, guard in (("ours", True), ("ours, guard off", False)):
-        f = predict(model, x, HORIZON, guard=guard)
-        out[name] = part_errors(model.vertices(f.reshape(-1, *f.shape[2:])).reshape(truth.shape), truth, masks)
-    out["zero velocity"] = part_errors(zero, truth, masks)
+    for name, options in ROLL_OUTS.items():
+        f = predict(model, x, HORIZON, **options)
+        out[name] = part_errors(model.vertices(f.reshape(-1, *f.shape[2:])).reshape(truth.shape), truth, masks, rigid)
+    out["zero velocity"] = part_errors(zero, truth, masks, rigid)
     return out
 
 
@@ -61,6 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("specs", nargs="+", metavar="SPEC", help="sequences (FILE or FILE:NAME)")
     p.add_argument("--given", type=int, default=3)
     p.add_argument("--every", type=int, default=4)
+    p.add_argument("--rigid", action="store_true", help="align rotations too (the benchmark's rigid figures)")
     args = p.parse_args(argv)
     import meshseq
     from meshseq.io import load_sequence
@@ -68,10 +76,10 @@ def main(argv: list[str] | None = None) -> None:
     model = meshseq.load(args.run)
     for spec in args.specs:
         seq = load_sequence(spec)
-        res = sequence_errors(model, seq.vertices.astype(np.float64), seq.faces, args.given, args.every)
-        print(f"{spec}: u{args.given}, x 1e-4 at h5 / h10 / h15")
+        res = sequence_errors(model, seq.vertices.astype(np.float64), seq.faces, args.given, args.every, args.rigid)
+        print(f"{spec}: u{args.given}, x 1e-4 at h5 / h10 / h15{', rigid' if args.rigid else ''}")
         for method, parts in res.items():
-            print(f"  {method:16s} " + "   ".join(f"{part} " + " / ".join(f"{v * 1e4:.0f}" for v in e)
+            print(f"  {method:22s} " + "   ".join(f"{part} " + " / ".join(f"{v * 1e4:.0f}" for v in e)
                                              for part, e in parts.items()), flush=True)
 
 
