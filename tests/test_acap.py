@@ -359,6 +359,7 @@ def test_jump_report_counts_a_planted_jump_and_rejects_bad_shapes():
     logs[3, 0, 2] = 0.3 + 3.5  # a real 3.5 rad turn in one frame (and back) is motion, not a spurious jump
     r = branch_jumps(logs)
     assert r["spurious_jumps"] == 1 and r["largest_spurious_step"] == pytest.approx(2 * np.pi - 0.1)
+    assert r["fast_turns"] == 2 and r["fast_turn_vertices"] == 1  # the turn there and the turn back
     for bad in (np.zeros((5, 3)), np.zeros((5, 2, 4)), np.full((2, 1, 3), np.nan)):
         with pytest.raises(MeshseqError):
             branch_jumps(bad)

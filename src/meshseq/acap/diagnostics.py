@@ -29,8 +29,12 @@ def branch_jumps(logs: np.ndarray) -> dict:
 
     Returns a JSON-ready dict: ``spurious_jumps`` (vertex-steps), ``spurious_jump_vertices``,
     ``vertex_steps`` ((T - 1) V), ``largest_step`` (longest log step of any vertex, radians),
-    ``largest_spurious_step`` (0 when there is none), ``largest_log_norm`` and
-    ``median_motion_at_jumps`` (median rotation change at the spurious steps; None when none).
+    ``largest_spurious_step`` (0 when there is none), ``largest_log_norm``,
+    ``median_motion_at_jumps`` (median rotation change at the spurious steps; None when none), and
+    ``fast_turns`` / ``fast_turn_vertices``: the vertex-steps, and the vertices with any, where the
+    rotation itself turns by pi/2 or more in one frame (real motion, no jump, but more than a straight
+    line between two frames' logs follows: where many vertices turn so fast, interpolating the
+    features between keys loses to interpolating the vertices).
     """
     r = np.asarray(logs, dtype=np.float64)
     if r.ndim != 3 or r.shape[-1] != 3:
@@ -54,6 +58,8 @@ def branch_jumps(logs: np.ndarray) -> dict:
         "largest_spurious_step": float(step[spurious].max(initial=0.0)),
         "largest_log_norm": float(norm.max(initial=0.0)),
         "median_motion_at_jumps": float(np.median(motion[spurious])) if spurious.any() else None,
+        "fast_turns": int((motion >= JUMP_MOTION).sum()),
+        "fast_turn_vertices": int((motion >= JUMP_MOTION).any(axis=0).sum()),
     }
 
 
