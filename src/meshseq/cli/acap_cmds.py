@@ -26,7 +26,7 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.add_argument("--no-jumps", dest="jumps", action="store_false",
                    help="skip the feature check (extracting the default ACAP features against frame 0 "
-                   "and counting spurious 2 pi jumps of their rotation logs in time)")
+                   "and counting spurious 2 pi jumps of their rotation logs in time, and fast turns)")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("features", help="extract ACAP features (T, V, 9) to a .npz",
