@@ -8,8 +8,10 @@ For every sequence (frames [FIRST, LAST) only: a capture's training part) and ga
 in-between error of interpolating the ACAP features (reconstructed through the keys, as
 ``complete --method linear``), the vertices (``--method linear_vertices``), the two averaged, the
 one the context picks, and the better of the two per gap (an oracle), each over the better of the
-two means (the benchmark's reference), and the truth's own features reconstructed through the keys
-(what the features lose before any interpolation). The context pick: the same two interpolations over the
+two means (the benchmark's reference), the truth's own features reconstructed through the keys
+(what the features lose before any interpolation), and the features interpolated with each vertex's
+rotation turned along its shortest path (``acap.interpolation.geodesic_interpolation``). The
+context pick: the same two interpolations over the
 frames given before key a and after key b (windows of ``min(gap, CONTEXT - 1)`` in-between frames
 ending on the keys), the one with the smaller error there. ``--blend W,...`` adds blends of the
 two, ``(1 - W)`` features + ``W`` vertices. RUN only supplies the mesh and the feature scaling: the
@@ -28,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from novelty_guard import gap_starts  # noqa: E402  (a sibling script: the gaps as the benchmarks place them)
 
 GAPS = (5, 10, 20, 30)
-COLUMNS = ("features", "vertices", "average", "context pick", "oracle", "true features")
+COLUMNS = ("features", "vertices", "average", "context pick", "oracle", "true features", "geodesic features")
 
 
 def interpolations(model, verts: np.ndarray, feats: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
@@ -39,6 +41,18 @@ def interpolations(model, verts: np.ndarray, feats: np.ndarray, a: int, b: int) 
     n = b - a - 1
     in_features = assemble_vertices(model, linear_interpolation(feats[a], feats[b], n), {0: verts[a], n + 1: verts[b]})
     return in_features[1:-1], linear_interpolation(verts[a], verts[b], n)[1:-1]
+
+
+def geodesic_frames(model, verts: np.ndarray, feats: np.ndarray, a: int, b: int) -> np.ndarray:
+    """In-between frames ``(b - a - 1, V, 3)`` of ``geodesic_interpolation`` from frame a to frame b,
+    reconstructed through the keys as ``interpolations``' features are."""
+    from meshseq.acap.interpolation import geodesic_interpolation
+    from meshseq.synthesize import assemble_vertices
+
+    n = b - a - 1
+    raw = model.scaling.invert(feats[[a, b]].astype(np.float64))
+    inner = model.scaling.apply(geodesic_interpolation(raw[0], raw[1], n))
+    return assemble_vertices(model, inner, {0: verts[a], n + 1: verts[b]})[1:-1]
 
 
 def context_errors(model, verts: np.ndarray, feats: np.ndarray, a: int, b: int, gap: int) -> np.ndarray:
@@ -57,7 +71,7 @@ def context_errors(model, verts: np.ndarray, feats: np.ndarray, a: int, b: int, 
 
 
 def gap_table(model, verts: np.ndarray, gap: int, blends: tuple[float, ...] = ()) -> np.ndarray | None:
-    """``(6 + len(blends),)`` mean in-between error of each ``COLUMNS`` entry, then of each blend
+    """``(7 + len(blends),)`` mean in-between error of each ``COLUMNS`` entry, then of each blend
     ``(1 - w)`` features + ``w`` vertices, over the better of features and vertices, over 12 gaps of
     ``gap`` frames; None where the sequence is too short."""
     from meshseq.align import per_vertex_error
@@ -76,7 +90,8 @@ def gap_table(model, verts: np.ndarray, gap: int, blends: tuple[float, ...] = ()
         pick = context_errors(model, verts, feats, a, b, gap)
         own = assemble_vertices(model, feats[a:b + 1], {0: verts[a], gap + 1: verts[b]})[1:-1]
         rows.append([e_f, e_v, per_vertex_error(0.5 * (in_f + in_v), truth).mean(),
-                     e_v if pick[1] < pick[0] else e_f, min(e_f, e_v), per_vertex_error(own, truth).mean()]
+                     e_v if pick[1] < pick[0] else e_f, min(e_f, e_v), per_vertex_error(own, truth).mean(),
+                     per_vertex_error(geodesic_frames(model, verts, feats, a, b), truth).mean()]
                     + [per_vertex_error((1 - w) * in_f + w * in_v, truth).mean() for w in blends])
     means = np.mean(rows, axis=0)
     return means / min(means[0], means[1])

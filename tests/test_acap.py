@@ -391,3 +391,27 @@ def test_robust_scaling_ignores_a_few_outliers_and_inverts_exactly(tmp_path):
     robust.save(path)
     loaded = Scaling.load(path)
     assert loaded.mode == "robust" and np.array_equal(loaded.apply(bad), y)
+
+
+def test_geodesic_interpolation_turns_each_rotation_the_short_way_and_keeps_the_rest_linear():
+    from scipy.spatial.transform import Rotation
+
+    from meshseq.acap.diagnostics import rotation_logs
+    from meshseq.acap.interpolation import geodesic_interpolation, log_channels
+    from meshseq.baselines import linear_interpolation
+
+    rng = np.random.default_rng(3)
+    axis = np.array([0.0, 0.6, 0.8])
+    logs_a = np.stack([0.4 * axis, 1.0 * axis, (2.0 + 2 * np.pi) * axis])  # the third on an outer shell
+    logs_b = np.stack([0.9 * axis, 2.5 * axis, 2.0 * axis])  # the third: the same rotation, one shell in
+    key_a = np.concatenate([log_channels(logs_a), rng.normal(size=(3, 6))], axis=1)
+    key_b = np.concatenate([log_channels(logs_b), rng.normal(size=(3, 6))], axis=1)
+    out = geodesic_interpolation(key_a, key_b, 4)
+    line = linear_interpolation(key_a, key_b, 4)
+    np.testing.assert_array_equal(out[[0, -1]], np.stack([key_a, key_b]))
+    np.testing.assert_allclose(out[..., 3:], line[..., 3:])
+    logs = rotation_logs(out)
+    np.testing.assert_allclose(logs[:, :2], rotation_logs(line)[:, :2], atol=1e-12)  # one axis, one branch: the line
+    held = Rotation.from_rotvec(logs[:, 2]).as_matrix()  # the line would turn it a full turn
+    np.testing.assert_allclose(held, np.broadcast_to(Rotation.from_rotvec(logs_b[2]).as_matrix(), held.shape), atol=1e-9)
+    assert (np.linalg.norm(logs - rotation_logs(line), axis=-1) <= np.pi).all()  # each the branch nearest the line
