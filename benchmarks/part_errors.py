@@ -7,7 +7,10 @@ For each sequence: ours (guarded, the default; ``--guard off``; the paper's roll
 --pace model --carry 0``) and zero velocity, the mean centroid-aligned (``--rigid``: also
 rotation-aligned) error x 1e-4 at h5 / h10 / h15 over the vertices of the largest part and over the
 others (the whole mesh aligned once, as the benchmark scores it), starts every ``--every`` frames
-over the whole sequence. A single-part mesh prints the body alone.
+over the whole sequence. A single-part mesh prints the body alone. ``--motion``: instead, the
+benchmark's motion of 50 (the feature change of 50 frames predicted from one given frame, over the
+truth's; guarded, starts as the benchmark takes them) over each part's rotation, stretch and
+placement channels.
 """
 
 from __future__ import annotations
@@ -62,6 +65,32 @@ def sequence_errors(model, verts: np.ndarray, faces: np.ndarray, given: int, eve
     return out
 
 
+CHANNELS = {"rotation": slice(0, 3), "stretch": slice(3, 9), "placement": slice(9, None)}
+
+
+def motion_by_part(model, feats: np.ndarray, masks: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    """``{part: {channel group: ours' feature change over the truth's}}`` of 50 frames predicted from
+    one given frame (``evaluate.feature_change``'s curve, restricted to the part's vertices and the
+    group's channels); a group the truth never changes (the body's placement) is left out."""
+    from meshseq.evaluate import predicted_features, prediction_starts
+    from meshseq.plots import feature_change
+
+    starts = prediction_starts(0, len(feats), 1, 1)
+    starts = starts[:: max(1, len(starts) // 8)]
+    pred = predicted_features("ours", model, feats, starts, 1, 50)
+    ours = model.scaling.invert(np.concatenate([feats[starts][:, None], pred], axis=1).astype(np.float64))
+    truth = model.scaling.invert(feats.astype(np.float64))
+    out: dict[str, dict[str, float]] = {}
+    for part, mask in masks.items():
+        for group, channels in CHANNELS.items():
+            if not mask.any() or channels.start >= feats.shape[-1]:
+                continue
+            moved = feature_change(truth[:, mask, channels]).mean()
+            if moved > 0:
+                out.setdefault(part, {})[group] = float(feature_change(ours[:, :, mask, channels]).mean() / moved)
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("run", help="a trained run")
@@ -69,6 +98,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--given", type=int, default=3)
     p.add_argument("--every", type=int, default=4)
     p.add_argument("--rigid", action="store_true", help="align rotations too (the benchmark's rigid figures)")
+    p.add_argument("--motion", action="store_true", help="the motion of 50 per part and channel group instead")
     args = p.parse_args(argv)
     import meshseq
     from meshseq.io import load_sequence
@@ -76,6 +106,12 @@ def main(argv: list[str] | None = None) -> None:
     model = meshseq.load(args.run)
     for spec in args.specs:
         seq = load_sequence(spec)
+        if args.motion:
+            res = motion_by_part(model, model.features(seq.vertices.astype(np.float64)),
+                                 part_masks(seq.faces, seq.n_vertices))
+            print(f"{spec}: motion of 50 over the truth's, " + "   ".join(
+                f"{part} " + ", ".join(f"{g} {v:.2f}" for g, v in groups.items()) for part, groups in res.items()))
+            continue
         res = sequence_errors(model, seq.vertices.astype(np.float64), seq.faces, args.given, args.every, args.rigid)
         print(f"{spec}: u{args.given}, x 1e-4 at h5 / h10 / h15{', rigid' if args.rigid else ''}")
         for method, parts in res.items():
