@@ -81,10 +81,9 @@ def main() -> None:
     rules = {name: trust_rule(name) for name in args.rules.split(",")}
     model = meshseq.load(args.run)
     for spec in args.specs:
-        path, _, frames = spec.partition("@")
-        shared = generalize.SHARED / path
-        verts = load_sequence(str(shared) if shared.is_file() else path).vertices.astype(np.float64)
-        lo, hi = (int(x) for x in frames.split(",")) if frames else (0, len(verts))
+        path, frames = generalize.frames_spec(spec)
+        verts = load_sequence(path).vertices.astype(np.float64)
+        lo, hi = frames or (0, len(verts))
         feats = model.features(verts)
         for name, rule in rules.items():
             res = block_errors(model, verts, feats, lo, hi, rule)

@@ -82,6 +82,15 @@ def single_capture(rec: dict) -> bool:
     return rec["train"]["holdout"] != 0
 
 
+def frames_spec(spec: str) -> tuple[str, tuple[int, int] | None]:
+    """``SPEC[@FIRST,STOP]`` -> ``(the sequence's spec, (FIRST, STOP) or None)``, as the benchmark
+    scripts take sequences; a file in the shared data folder may be named alone (``pcow.npz``)."""
+    path, _, frames = spec.partition("@")
+    shared = SHARED / path
+    first_stop = tuple(int(x) for x in frames.split(",")) if frames else None
+    return (str(shared) if shared.is_file() else path), first_stop
+
+
 def body_specs(path: str, subject: str, motion: str) -> tuple[list[str], list[str]]:
     """``(training specs, held-out specs)`` of a make-bodies file: every ``SUBJECT_MOTION``
     sequence, those of ``subject`` or ``motion`` held out."""

@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from novelty_guard import gap_starts  # noqa: E402  (a sibling script: the gaps as the benchmarks place them)
+from generalize import frames_spec  # noqa: E402  (sibling scripts)
+from novelty_guard import gap_starts  # noqa: E402  (the gaps as the benchmarks place them)
 
 GAPS = (5, 10, 20, 30)
 COLUMNS = ("features", "vertices", "average", "context pick", "oracle", "true features", "geodesic features")
@@ -113,11 +114,10 @@ def main() -> None:
     print("over the better of features and vertices, at gaps " + " / ".join(map(str, GAPS)) + ": "
           + ", ".join(columns))
     for spec in args.specs:
-        path, _, frames = spec.partition("@")
+        path, frames = frames_spec(spec)
         verts = load_sequence(path).vertices.astype(np.float64)
         if frames:
-            first, last = (int(x) for x in frames.split(","))
-            verts = verts[first:last]
+            verts = verts[slice(*frames)]
         cells = []
         for gap in GAPS:
             row = gap_table(model, verts, gap, blends)

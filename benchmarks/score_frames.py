@@ -55,8 +55,7 @@ def main() -> None:
     p.add_argument("--guard", choices=("on", "off"), default="on", help="ours' predictions with the novelty guard "
                                                                       "(the benchmark's) or without")
     args = p.parse_args()
-    shared = generalize.SHARED / args.spec
-    spec = str(shared) if shared.is_file() else args.spec
+    spec = generalize.frames_spec(args.spec)[0]
     block = score_frames(args.run, spec, args.first, args.stop, args.guard == "on")
     guard = "" if args.guard == "on" else ", guard off"
     print(generalize.line(f"{Path(args.run).name} frames {args.first}-{args.stop}{guard}", block), flush=True)
