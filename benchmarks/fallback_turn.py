@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from novelty_guard import H as HORIZON, prediction_windows, vertex_errors  # noqa: E402  (a sibling script)
+from generalize import frames_spec  # noqa: E402  (sibling scripts)
+from novelty_guard import H as HORIZON, prediction_windows, vertex_errors  # noqa: E402
 
 RULES = ("fallback", "rigid turn", "turn + own share")
 
@@ -35,28 +36,18 @@ def mean_rotation(matrices: np.ndarray) -> np.ndarray:
     return (u * flip[:, None, :]) @ vt
 
 
-def nearest_representative(rotvec: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Rotation vectors ``(N, 3)`` of angle at most pi, each moved by a multiple of 2 pi along its
-    axis to the one nearest ``target`` ``(N, 3)`` (the log continuous with the frames before)."""
-    angle = np.linalg.norm(rotvec, axis=1, keepdims=True)
-    axis = rotvec / np.maximum(angle, 1e-12)
-    best, dist = rotvec.copy(), np.linalg.norm(rotvec - target, axis=1)
-    for k in (-2, -1, 1, 2):
-        c = axis * (angle + 2 * np.pi * k)
-        d = np.linalg.norm(c - target, axis=1)
-        closer = d < dist
-        best[closer], dist[closer] = c[closer], d[closer]
-    return best
-
-
 def turn_steps(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(mean turn (B, 3), each vertex's own step after it (B, V, 3), each vertex's step (B, V, 3))``
     as rotation vectors: the rotation steps between the last two given frames ``raw`` ``(B, 2, V, C)``
-    (unscaled features), their mean rotation and what each leaves after it."""
+    (unscaled features; their rotations read with ``diagnostics.rotation_logs``), their mean rotation
+    and what each leaves after it."""
     from scipy.spatial.transform import Rotation
 
+    from meshseq.acap.diagnostics import rotation_logs
+
     b, _, v, _ = raw.shape
-    steps = Rotation.from_rotvec(raw[:, 1, :, :3].reshape(-1, 3)) * Rotation.from_rotvec(raw[:, 0, :, :3].reshape(-1, 3)).inv()
+    logs = rotation_logs(raw[:, :2])
+    steps = Rotation.from_rotvec(logs[:, 1].reshape(-1, 3)) * Rotation.from_rotvec(logs[:, 0].reshape(-1, 3)).inv()
     q = mean_rotation(steps.as_matrix().reshape(b, v, 3, 3))
     own = Rotation.from_matrix(np.repeat(q[:, None], v, 1).reshape(-1, 3, 3)).inv() * steps
     return Rotation.from_matrix(q).as_rotvec(), own.as_rotvec().reshape(b, v, 3), steps.as_rotvec().reshape(b, v, 3)
@@ -76,6 +67,9 @@ def turned(raw: np.ndarray, reach: np.ndarray, own: np.ndarray, turn: np.ndarray
     its stretch (channels 3-8) continued ``own * reach`` steps, placement channels (9-) ``reach`` steps."""
     from scipy.spatial.transform import Rotation
 
+    from meshseq.acap.diagnostics import rotation_logs
+    from meshseq.acap.interpolation import log_channels, nearest_branch
+
     b, _, v, _ = raw.shape
     n = reach.shape[1]
     own_reach = (own[:, None] * reach)[:, :, None, None]  # (B, n, 1, 1)
@@ -84,8 +78,8 @@ def turned(raw: np.ndarray, reach: np.ndarray, own: np.ndarray, turn: np.ndarray
     out[..., 3:9] = raw[:, 1:2, :, 3:9] + own_reach * velocity[..., 3:9]
     rot = (Rotation.from_rotvec(np.repeat((reach[:, :, None] * turn[:, None])[:, :, None], v, 2).reshape(-1, 3))
            * Rotation.from_rotvec((own_reach * own_step[:, None]).reshape(-1, 3))
-           * Rotation.from_rotvec(np.repeat(raw[:, 1:2, :, :3], n, 1).reshape(-1, 3))).as_rotvec()
-    out[..., :3] = nearest_representative(rot, out[..., :3].reshape(-1, 3)).reshape(b, n, v, 3)
+           * Rotation.from_rotvec(np.repeat(rotation_logs(raw[:, 1:2]), n, 1).reshape(-1, 3))).as_rotvec()
+    out[..., :3] = log_channels(nearest_branch(rot.reshape(b, n, v, 3), rotation_logs(out)))
     return out
 
 
@@ -129,10 +123,10 @@ def main(argv: list[str] | None = None) -> None:
     model = meshseq.load(args.run)
     pooled = {rule: [] for rule in RULES}
     for spec in args.specs:
-        path, _, frames = spec.partition("@")
+        path, frames = frames_spec(spec)
         verts = load_sequence(path).vertices.astype(np.float64)
         feats = model.features(verts)
-        first, stop = (int(x) for x in frames.split(",")) if frames else (0, len(verts))
+        first, stop = frames or (0, len(verts))
         res = ratios(model, verts[first:stop], feats[first:stop], args.every)
         for rule in RULES:
             pooled[rule].append(res[rule])
