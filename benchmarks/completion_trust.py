@@ -62,7 +62,7 @@ def block_errors(model, verts: np.ndarray, feats: np.ndarray, lo: int, hi: int, 
     from meshseq.evaluate import completion_errors
     from meshseq.synthesize import CONTEXT
 
-    gaps = [g for g in generalize.GAPS if hi - lo >= g + 2]
+    gaps = generalize.block_gaps(lo, hi)
     with trusting(rule):
         return completion_errors(model, verts, feats, lo, hi, gaps, ["ours", "linear", "linear_vertices"],
                                  samples=1, context=CONTEXT)

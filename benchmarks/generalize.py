@@ -113,6 +113,20 @@ def novelty(train_feats: np.ndarray, block_feats: np.ndarray) -> float:
     return float(np.median(nearest) / max(step, 1e-12))
 
 
+def block_gaps(lo: int, hi: int) -> list[int]:
+    """The completion gaps (``GAPS``) a block ``[lo, hi)`` is long enough for."""
+    return [g for g in GAPS if hi - lo >= g + 2]
+
+
+def motion_starts(lo: int, hi: int) -> np.ndarray:
+    """The starts the motion of 50 is measured from in block ``[lo, hi)``: about 8 of its one-frame
+    starts, evenly spaced."""
+    from meshseq.evaluate import prediction_starts
+
+    starts = prediction_starts(lo, hi, 1, 1)
+    return starts[:: max(1, len(starts) // 8)]
+
+
 def score_block(model, vae, verts: np.ndarray, feats: np.ndarray, train_feats: np.ndarray, train_level: float,
                 lo: int, hi: int, guard: bool = True) -> dict:
     """Every figure of one held-out block ``[lo, hi)`` of one sequence; ``train_level``: the training
@@ -125,7 +139,7 @@ def score_block(model, vae, verts: np.ndarray, feats: np.ndarray, train_feats: n
     out = {"frames": [int(lo), int(hi)], "novelty": novelty(train_feats, feats[lo:hi]),
            "motion_level": float(np.mean(step_levels(verts[lo:hi])) / max(train_level, 1e-12)),
            "prediction": prediction_scores(model, vae, verts, feats, lo, hi, PREDICTION, guard), "completion": {}}
-    gaps = [g for g in GAPS if hi - lo >= g + 2]
+    gaps = block_gaps(lo, hi)
     out["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1,
                                           context=CONTEXT)
     out.update(motion_scores(model, verts, feats, train_level, lo, hi, guard))
@@ -158,8 +172,7 @@ def motion_scores(model, verts: np.ndarray, feats: np.ndarray, train_level: floa
     from meshseq.plots import feature_change as relative_change
 
     out = {}
-    starts = prediction_starts(lo, hi, 1, 1)
-    fc = feature_change(model, feats, starts[:: max(1, len(starts) // 8)], 1, 50, ["ours"], guard=guard)
+    fc = feature_change(model, feats, motion_starts(lo, hi), 1, 50, ["ours"], guard=guard)
     truth = float(relative_change(model.scaling.invert(feats[lo:hi].astype(np.float64))).mean())
     out["motion_50"] = float(np.mean(fc["ours"]) / max(truth, 1e-12))
     starts3 = prediction_starts(lo, hi, 3, 15)
@@ -321,7 +334,7 @@ def rescore_completion(done: dict, run: Path, record: Path, specs: list[str], ar
 
     def update(model, block, verts, feats):
         lo, hi = block["frames"]
-        gaps = [g for g in GAPS if hi - lo >= g + 2]
+        gaps = block_gaps(lo, hi)
         block["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1,
                                                 context=CONTEXT)
 

@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from novelty_guard import CELLS, H as HORIZON, prediction_windows  # noqa: E402  (a sibling script)
+from generalize import motion_starts  # noqa: E402  (sibling scripts)
+from novelty_guard import CELLS, H as HORIZON, prediction_windows  # noqa: E402
 
 
 def part_errors(pred: np.ndarray, truth: np.ndarray, masks: dict[str, np.ndarray],
@@ -72,11 +73,10 @@ def motion_by_part(model, feats: np.ndarray, masks: dict[str, np.ndarray]) -> di
     """``{part: {channel group: ours' feature change over the truth's}}`` of 50 frames predicted from
     one given frame (``evaluate.feature_change``'s curve, restricted to the part's vertices and the
     group's channels); a group the truth never changes (the body's placement) is left out."""
-    from meshseq.evaluate import predicted_features, prediction_starts
+    from meshseq.evaluate import predicted_features
     from meshseq.plots import feature_change
 
-    starts = prediction_starts(0, len(feats), 1, 1)
-    starts = starts[:: max(1, len(starts) // 8)]
+    starts = motion_starts(0, len(feats))
     pred = predicted_features("ours", model, feats, starts, 1, 50)
     ours = model.scaling.invert(np.concatenate([feats[starts][:, None], pred], axis=1).astype(np.float64))
     truth = model.scaling.invert(feats.astype(np.float64))
