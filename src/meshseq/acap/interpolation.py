@@ -34,10 +34,10 @@ def geodesic_interpolation(key_a: np.ndarray, key_b: np.ndarray, n_between: int)
     s = np.linspace(0.0, 1.0, n_between + 2)[:, None, None]
     out = (1 - s) * a[None] + s * b[None]
     log_a, log_b = rotation_logs(a), rotation_logs(b)
-    rot_a = Rotation.from_rotvec(log_a)
-    turn = (rot_a.inv() * Rotation.from_rotvec(log_b)).as_rotvec()  # (V, 3), angle <= pi
-    frames = [(rot_a * Rotation.from_rotvec(t * turn)).as_rotvec() for t in s[:, 0, 0]]
-    logs = nearest_branch(np.stack(frames), rotation_logs(out))
+    turn = (Rotation.from_rotvec(log_a).inv() * Rotation.from_rotvec(log_b)).as_rotvec()  # (V, 3), angle <= pi
+    every = (len(s),) + log_a.shape  # (n_between + 2, V, 3): all frames in one batch
+    turned = Rotation.from_rotvec(np.broadcast_to(log_a, every).reshape(-1, 3)) * Rotation.from_rotvec((s * turn).reshape(-1, 3))
+    logs = nearest_branch(turned.as_rotvec().reshape(every), rotation_logs(out))
     logs[0], logs[-1] = log_a, log_b  # the keys exactly
     out[..., :3] = log_channels(logs)
     return out
