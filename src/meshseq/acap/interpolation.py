@@ -36,7 +36,8 @@ def geodesic_interpolation(key_a: np.ndarray, key_b: np.ndarray, n_between: int)
     log_a, log_b = rotation_logs(a), rotation_logs(b)
     turn = (Rotation.from_rotvec(log_a).inv() * Rotation.from_rotvec(log_b)).as_rotvec()  # (V, 3), angle <= pi
     every = (len(s),) + log_a.shape  # (n_between + 2, V, 3): all frames in one batch
-    turned = Rotation.from_rotvec(np.broadcast_to(log_a, every).reshape(-1, 3)) * Rotation.from_rotvec((s * turn).reshape(-1, 3))
+    start = Rotation.from_rotvec(np.broadcast_to(log_a, every).reshape(-1, 3))
+    turned = start * Rotation.from_rotvec((s * turn).reshape(-1, 3))
     logs = nearest_branch(turned.as_rotvec().reshape(every), rotation_logs(out))
     logs[0], logs[-1] = log_a, log_b  # the keys exactly
     out[..., :3] = log_channels(logs)
