@@ -278,6 +278,33 @@ def test_anchored_join_keeps_chains_that_reach_the_far_key_and_drops_ones_that_m
     np.testing.assert_allclose(out, still, atol=1e-12)
 
 
+def test_anchor_line_turns_rotations_the_short_way_and_the_anchored_join_falls_back_to_it(model, trained):
+    """``anchor_line``: ``straight`` is the keys' linear interpolation; ``geodesic`` is
+    ``geodesic_interpolation`` of the unscaled keys, pair by pair as in a batch, and differs from the
+    straight line where the rotations turn. Chains that miss their far keys (weight 0) are joined
+    onto the line given."""
+    from meshseq.acap.interpolation import geodesic_interpolation
+    from meshseq.baselines import linear_interpolation
+    from meshseq.errors import MeshseqError
+    from meshseq.synthesize import anchor_line, join_chains
+
+    f = model.features(trained[2].vertices)
+    a, b = f[[2, 10]], f[[30, 50]]  # (2, V, C): two pairs of keys far apart in the twist
+    straight = anchor_line(model, a, b, 7, "straight")
+    np.testing.assert_allclose(straight[1], linear_interpolation(a[1], b[1], 5), atol=1e-6)
+    geo = anchor_line(model, a, b, 7)
+    assert geo.shape == (2, 7) + f.shape[1:] and geo.dtype == f.dtype
+    one = model.scaling.apply(geodesic_interpolation(*model.scaling.invert(np.stack([a[1], b[1]]).astype(np.float64)), 5))
+    np.testing.assert_allclose(geo[1], one, atol=1e-5)
+    np.testing.assert_allclose(geo[:, [0, -1]], np.stack([a, b], 1), atol=1e-5)
+    assert np.abs(geo - straight).max() > 1e-3
+    held_a, held_b = np.repeat(a[:, None], 7, 1), np.repeat(b[:, None], 7, 1)  # each chain stays on its key
+    out = join_chains(held_a, held_b, "anchored", line=geo)[0]
+    np.testing.assert_allclose(out, geo, atol=1e-5)
+    with pytest.raises(MeshseqError, match="unknown line"):
+        anchor_line(model, a, b, 7, "curved")
+
+
 def test_context_fit_trusts_frames_the_model_predicts_and_not_a_pose_held_still(model, trained):
     """``context_fit``: frames that are the model's own roll-out (to the key, each side in its
     chain's direction) are predicted exactly (0); a pose held still is not (standing still is exact)."""

@@ -22,8 +22,8 @@ from meshseq import baselines
 from meshseq.align import per_vertex_error
 from meshseq.errors import MeshseqError
 from meshseq.plots import feature_change as relative_change
-from meshseq.synthesize import (METHOD_JOINS, assemble_vertices, chain_states, complete_cma, join_chain_states,
-                                join_chains, predict, run_chains, run_context_chains)
+from meshseq.synthesize import (METHOD_JOINS, anchor_line, assemble_vertices, chain_states, complete_cma,
+                                join_chain_states, join_chains, predict, run_chains, run_context_chains)
 
 UNITS = 1e-4  # errors are reported in the data's units x 1e-4 (paper's tables)
 
@@ -170,13 +170,14 @@ def feature_change(model, feats: np.ndarray, starts: np.ndarray, given: int, n_f
 def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, hi: int,
                       gaps: list[int], methods: list[str], samples: int = 4, seed: int = 0,
                       max_starts: int = 8, cma_evals: int = 200, cma_seconds: float = 20.0,
-                      context: int = 0) -> dict:
+                      context: int = 0, line: str = "geodesic") -> dict:
     """In-between errors (x 1e-4, centroid-aligned, mean over in-between frames and starts) for
     held-out gaps, and the diversity of ``samples`` random-state completions (ours).
 
     With ``context`` > 0 the chains of ours are given up to that many frames of the sequence before
     key a and after key b (``synthesize.complete``'s ``before`` / ``after``, the command's
-    ``--context``); the other methods always the keys alone.
+    ``--context``); the other methods always the keys alone. ``line``: what ours' anchored join draws
+    toward (``synthesize.anchor_line``).
 
     Returns ``{str(gap): {method: error, ..., "diversity": d, "starts": n}}``.
     """
@@ -187,7 +188,8 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
             continue
         starts = starts[np.linspace(0, len(starts) - 1, min(max_starts, len(starts))).astype(int)]
         res: dict = {"starts": int(len(starts))}
-        frames = _completion_features(model, feats, starts, gap, methods, seed, cma_evals, cma_seconds, context)
+        frames = _completion_features(model, feats, starts, gap, methods, seed, cma_evals, cma_seconds, context,
+                                      line)
         for m in methods:
             errs = []
             for p, a in enumerate(starts):
@@ -205,7 +207,8 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
 
 
 def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int, methods: list[str], seed: int,
-                         cma_evals: int, cma_seconds: float, context: int = 0) -> dict[str, np.ndarray]:
+                         cma_evals: int, cma_seconds: float, context: int = 0,
+                         line: str = "geodesic") -> dict[str, np.ndarray]:
     """Scaled features ``(P, gap + 2, V, 9)`` of each feature-space method's completion of the gaps
     ``feats[s] .. feats[s + gap + 1]`` for the P ``starts``. The chains of every start run as one
     roll-out from the trained initial states (what ``complete`` does for one gap; ``context_chains``),
@@ -220,7 +223,8 @@ def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int,
             if frames_around not in chains:
                 chains[frames_around] = context_chains(model, feats, starts, gap, frames_around)
             fw, bw, trusted = chains[frames_around]
-            f = join_chains(fw, bw, METHOD_JOINS[m], trusted=trusted)[0]
+            anchor = anchor_line(model, keys_a, keys_b, gap + 2, line) if METHOD_JOINS[m] == "anchored" else None
+            f = join_chains(fw, bw, METHOD_JOINS[m], trusted=trusted, line=anchor)[0]
             f[:, 0], f[:, -1] = keys_a, keys_b
         elif m == "cma":  # one optimisation per gap (each batches its population)
             f = np.stack([complete_cma(model, a, b, gap, max_evals=cma_evals, max_seconds=cma_seconds,

@@ -440,12 +440,12 @@ def run_chains(model, keys_a, keys_b, n_between: int, state) -> tuple[np.ndarray
 
 
 def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int = 2,
-                trusted: np.ndarray | None = None):
+                trusted: np.ndarray | None = None, line: np.ndarray | None = None):
     """``(frames (P, n, V, C), meeting frames (P,), gaps (P,))`` of P chain pairs ``(P, n, V, C)``
     (``run_chains``) joined by ``join``, all pairs at once: what ``corrected_crossfade`` or
-    ``stitch_chains`` give pair by pair, and for ``anchored`` the corrected frames drawn toward the
-    keys' straight line by ``reach_weights``, except the pairs ``trusted`` ``(P,)`` bool marks
-    (``context_trust``), which keep the corrected join;
+    ``stitch_chains`` give pair by pair, and for ``anchored`` the corrected frames drawn toward
+    ``line`` ``(P, n, V, C)`` (``anchor_line``; default the keys' straight line) by ``reach_weights``,
+    except the pairs ``trusted`` ``(P,)`` bool marks (``context_trust``), which keep the corrected join;
     ``meeting``/``gap``: where the raw chains agree best (``stitch_chains``' choice), whatever the join."""
     pairs, n = forward.shape[:2]
     back = backward[:, ::-1]  # forward time order: back[:, -1] = key b
@@ -465,11 +465,35 @@ def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int
     frames += np.multiply(back, ramp, out=diff)  # (diff's memory reused: same bits, no temporaries)
     frames -= np.multiply(ramp * (1 - ramp), miss[:, None], out=diff)
     if join == "anchored":
-        line = forward[:, :1] * (1 - ramp) + backward[:, :1] * ramp  # (P, n, V, C)
+        if line is None:
+            line = forward[:, :1] * (1 - ramp) + backward[:, :1] * ramp  # (P, n, V, C)
         w = reach_weights(forward, backward)
         w = (w if trusted is None else np.where(trusted, 1.0, w)).astype(forward.dtype)[:, None, None, None]
         frames = line + w * (frames - line)
     return frames, meets, gaps.astype(np.float64)
+
+
+#: The line between two keys that the ``anchored`` join draws its chains toward (``anchor_line``).
+LINES = ("geodesic", "straight")
+
+
+def anchor_line(model, keys_a: np.ndarray, keys_b: np.ndarray, n: int, line: str = "geodesic") -> np.ndarray:
+    """Scaled features ``(P, n, V, C)`` from ``keys_a`` to ``keys_b`` ``(P, V, C)`` (scaled), keys
+    included: ``straight``, every channel linear; ``geodesic`` (default), the same but each vertex's
+    rotation turned along its shortest path (``acap.interpolation.geodesic_interpolation``, on the
+    unscaled features). Where a rotation turns far between the keys or its log lies on an outer
+    branch, the straight line passes through poses neither key is near (method.md, "5. Synthesis")."""
+    if line not in LINES:
+        raise MeshseqError(f"unknown line {line!r}; expected one of {', '.join(LINES)}")
+    a, b = np.asarray(keys_a), np.asarray(keys_b)
+    if line == "straight":
+        ramp = np.linspace(0.0, 1.0, n).astype(a.dtype)[None, :, None, None]
+        return a[:, None] * (1 - ramp) + b[:, None] * ramp
+    from meshseq.acap.interpolation import geodesic_interpolation
+
+    raw = model.scaling.invert(np.stack([a, b]).astype(np.float64))  # (2, P, V, C)
+    frames = model.scaling.apply(geodesic_interpolation(raw[0], raw[1], n - 2))  # (n, P, V, C)
+    return np.ascontiguousarray(frames.swapaxes(0, 1), dtype=a.dtype)
 
 
 def reach_weights(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
@@ -558,7 +582,7 @@ def sample_join(method: str, random_state: bool) -> str:
 
 def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state: bool | None = None,
              seed: int | None = None, blend: int = 2, join: str | None = None,
-             seeds: list[int] | None = None, before=None, after=None) -> Completion:
+             seeds: list[int] | None = None, before=None, after=None, line: str = "geodesic") -> Completion:
     """Fill ``n_between`` frames between two keys with the two chains, joined by ``join``.
 
     All samples' chains run as one batched roll-out (``run_chains``).
@@ -583,6 +607,7 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
             familiar and those frames move as training does there (``context_trust``) the
             ``anchored`` join keeps the chains' own motion (the corrected join) instead of
             drawing it toward the line.
+        line: the line between the keys that ``anchored`` draws toward (``anchor_line``).
     """
     random_state = (samples > 1 if random_state is None else random_state) or seeds is not None
     if join is None:
@@ -603,7 +628,8 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
     if join == "anchored" and (before is not None or after is not None):  # one pair of keys: trusted once
         one = [None if c is None else c[:1] for c in (ctx_a, ctx_b)]
         trusted = np.repeat(context_trust(model, one[0], keys_a[:1], one[1], keys_b[:1]), samples)
-    frames, meets, gaps = join_chains(forward, backward, join, blend, trusted=trusted)
+    anchor = anchor_line(model, keys_a, keys_b, n_between + 2, line) if join == "anchored" else None
+    frames, meets, gaps = join_chains(forward, backward, join, blend, trusted=trusted, line=anchor)
     frames[:, 0] = np.asarray(key_a)
     frames[:, -1] = np.asarray(key_b)
     return Completion(frames, meets, gaps)
@@ -654,7 +680,7 @@ def complete_cma(model, key_a, key_b, n_between: int, max_evals: int = 400, max_
 def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method: str = "ours",
                        samples: int = 1, seed: int = 0, cma_evals: int = 400,
                        cma_seconds: float = 60.0, before: np.ndarray | None = None,
-                       after: np.ndarray | None = None) -> np.ndarray:
+                       after: np.ndarray | None = None, line: str = "geodesic") -> np.ndarray:
     """Fill every gap between consecutive keyframes and return vertices through all of them.
 
     Args:
@@ -670,6 +696,7 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
             ``after``); the other methods use the keys alone (``stitch`` is the paper's), and so do
             several samples (warming their random initial states up on the same frames would pull
             them together: on crane the diversity of 8 fell by 13%).
+        line: what ``ours``' anchored join draws toward (``anchor_line``).
     Returns:
         ``(samples, K + sum(gaps), V, 3)`` vertices, exactly the keys at the key frames.
     """
@@ -690,7 +717,8 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
         if method in METHOD_JOINS:
             seeds = [seed * 1000 + s * 97 + i for s in range(samples)] if samples > 1 else None
             f = complete(model, key_f[i], key_f[i + 1], gap, seeds=seeds, join=sample_join(method, samples > 1),
-                         before=ctx_a if i == 0 else None, after=ctx_b if i == len(gaps) - 1 else None).frames
+                         before=ctx_a if i == 0 else None, after=ctx_b if i == len(gaps) - 1 else None,
+                         line=line).frames
         elif method == "cma":
             f = complete_cma(model, key_f[i], key_f[i + 1], gap, max_evals=cma_evals,
                              max_seconds=cma_seconds, seed=seed + i).frames

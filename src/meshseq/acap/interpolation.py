@@ -23,15 +23,15 @@ def log_channels(logs: np.ndarray) -> np.ndarray:
 
 
 def geodesic_interpolation(key_a: np.ndarray, key_b: np.ndarray, n_between: int) -> np.ndarray:
-    """Unscaled features ``(n_between + 2, V, C)`` from ``key_a`` to ``key_b`` ``(V, C)``, keys
-    included: every channel linear as ``baselines.linear_interpolation`` but the rotation's, which
+    """Unscaled features ``(n_between + 2, ..., V, C)`` from ``key_a`` to ``key_b`` ``(..., V, C)``
+    (one pair of keys or a batch of them), keys included: every channel linear as ``baselines.linear_interpolation`` but the rotation's, which
     turns at a constant rate about the smallest rotation from key a's rotation to key b's; each
     in-between log is the representative (its principal log plus a multiple of 2 pi along its
     axis) nearest the straight line's, so the logs stay continuous with the keys'."""
     from scipy.spatial.transform import Rotation
 
     a, b = np.asarray(key_a, dtype=np.float64), np.asarray(key_b, dtype=np.float64)
-    s = np.linspace(0.0, 1.0, n_between + 2)[:, None, None]
+    s = np.linspace(0.0, 1.0, n_between + 2).reshape((-1,) + (1,) * a.ndim)
     out = (1 - s) * a[None] + s * b[None]
     log_a, log_b = rotation_logs(a), rotation_logs(b)
     turn = (Rotation.from_rotvec(log_a).inv() * Rotation.from_rotvec(log_b)).as_rotvec()  # (V, 3), angle <= pi
