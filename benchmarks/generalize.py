@@ -46,6 +46,9 @@ PACE_UNNAMED = "warm-up"
 #: pace training shows there and heading where it went (``training``), or, in records scored before
 #: they named theirs, at the pace the model's warm-up expected (``warm-up``)
 TRUST, TRUST_UNNAMED = "training", "warm-up"
+#: the line completion's anchored join draws toward (``synthesize.anchor_line``), or, in records scored
+#: before they named theirs, the straight one
+LINE, LINE_UNNAMED = "geodesic", "straight"
 
 
 def scored_pace() -> str:
@@ -56,13 +59,15 @@ def scored_pace() -> str:
 
 
 def record_label(rec: dict, block: str = "") -> str:
-    """``"bodies, 2000 it"``, with the seed where not 0, the pace and trust rules where not today's,
-    and the rotation consistency where not today's default and it changes the features; ``block``
+    """``"bodies, 2000 it"``, with the seed where not 0, the pace and trust rules and completion's
+    line where not today's, and the rotation consistency where not today's default and it changes the features; ``block``
     (``"@ 0.5"``, ``"unseen sequence"``) follows the set's name."""
     seed = rec["train"].get("seed", 0)
     pace, trust = rec.get("pace", PACE_UNNAMED), rec.get("trust", TRUST_UNNAMED)
+    anchor = rec.get("line", LINE_UNNAMED)
     return (f"{rec['set']}{f' {block}' if block else ''}, {rec['iteration']} it{f', seed {seed}' if seed else ''}"
             f"{f', pace {pace}' if pace != scored_pace() else ''}{f', trust {trust}' if trust != TRUST else ''}"
+            f"{f', {anchor} line' if anchor != LINE else ''}"
             f"{f', {logs} logs' if (logs := record_consistency(rec)) else ''}")
 
 
@@ -235,7 +240,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
         blocks.append(block)
         print(line(tag, block), flush=True)
     out = {"set": name, "holdout_at": holdout_at, "iteration": model.iteration, "seconds_training": seconds,
-           "pace": scored_pace(), "trust": TRUST, "train": model.meta["train"], "novelty_reference": reference,
+           "pace": scored_pace(), "trust": TRUST, "line": LINE, "train": model.meta["train"], "novelty_reference": reference,
            "blocks": blocks,
            "command": "python benchmarks/generalize.py " + " ".join(args.argv)}
     if held_out:
@@ -338,7 +343,7 @@ def rescore_completion(done: dict, run: Path, record: Path, specs: list[str], ar
         block["completion"] = completion_errors(model, verts, feats, lo, hi, gaps, list(COMPLETION), samples=1,
                                                 context=CONTEXT)
 
-    done["trust"] = TRUST
+    done["trust"], done["line"] = TRUST, LINE
     return rescore(done, run, record, specs, args, "completion", update)
 
 

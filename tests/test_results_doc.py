@@ -110,22 +110,26 @@ def test_the_targets_table_marks_each_missed_target_with_the_cell_that_misses_it
     assert generalize.record_targets(rec)[4] == "0.75-1.00 met"
 
 
-def test_a_record_scored_with_another_pace_or_trust_rule_says_so(tmp_path):
+def test_a_record_scored_with_another_pace_trust_or_line_says_so(tmp_path):
     generalize = _generalize()
     rec = json.loads((RECORDS / "generalize" / "bodies-at-end.json").read_text())
     assert rec["pace"] == generalize.scored_pace() and rec["trust"] == generalize.TRUST
+    assert rec["line"] == generalize.LINE
     assert generalize.record_label(rec) == "bodies, 2000 it"
     del rec["pace"]  # scored before records named their pace
     assert generalize.record_label(rec) == "bodies, 2000 it, pace warm-up"
     del rec["trust"]  # and their completion's trust
     assert generalize.record_label(rec) == "bodies, 2000 it, pace warm-up, trust warm-up"
+    del rec["line"]  # and the line completion draws toward
+    old = "bodies, 2000 it, pace warm-up, trust warm-up, straight line"
+    assert generalize.record_label(rec) == old
     path = tmp_path / "old.json"
     path.write_text(json.dumps(rec))
-    assert "| bodies unseen sequence, 2000 it, pace warm-up, trust warm-up |" in generalize.table([str(path)])
+    assert f"| bodies unseen sequence, {old.removeprefix('bodies, ')} |" in generalize.table([str(path)])
     rec["train"]["consistency"] = "temporal"  # trained before the smallest-turn walk
-    assert generalize.record_label(rec) == "bodies, 2000 it, pace warm-up, trust warm-up, temporal logs"
+    assert generalize.record_label(rec) == old + ", temporal logs"
     rec["train"]["holdout"] = 0.2  # a single capture: the same features under both walks
-    assert generalize.record_label(rec) == "bodies, 2000 it, pace warm-up, trust warm-up"
+    assert generalize.record_label(rec) == old
 
 
 def test_a_capture_held_out_by_another_fraction_is_named_for_it():
