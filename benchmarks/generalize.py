@@ -46,9 +46,10 @@ PACE_UNNAMED = "warm-up"
 #: pace training shows there and heading where it went (``training``), or, in records scored before
 #: they named theirs, at the pace the model's warm-up expected (``warm-up``)
 TRUST, TRUST_UNNAMED = "training", "warm-up"
-#: the line completion's anchored join draws toward (``synthesize.anchor_line``), or, in records scored
-#: before they named theirs, the straight one
-LINE, LINE_UNNAMED = "geodesic", "straight"
+#: the line completion's anchored join draws toward: the geodesic one (``synthesize.anchor_line``)
+#: blended toward the vertices' by the run's fitted share (``meshseq.inbetween``, ``fitted``), or, in
+#: records scored before, the geodesic one alone or (records that name none) the straight one
+LINE, LINE_UNNAMED = "fitted", "straight"
 
 
 def scored_pace() -> str:
@@ -233,6 +234,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     model = meshseq.load(run)
     splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
     reference = ensure_novelty(model, specs, splits)
+    vertex_share = ensure_vertex_share(model, specs, splits)
     train_feats = np.concatenate([model.scaling.apply(f)[a:b] for f, s in zip(data.features, splits) for a, b in s.train])
     held = [(spec, *(splits[index].heldout if index is not None else (None, None))) for index, spec in scored]
     blocks = []
@@ -240,7 +242,8 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
         blocks.append(block)
         print(line(tag, block), flush=True)
     out = {"set": name, "holdout_at": holdout_at, "iteration": model.iteration, "seconds_training": seconds,
-           "pace": scored_pace(), "trust": TRUST, "line": LINE, "train": model.meta["train"], "novelty_reference": reference,
+           "pace": scored_pace(), "trust": TRUST, "line": LINE, "vertex_share": vertex_share,
+           "train": model.meta["train"], "novelty_reference": reference,
            "blocks": blocks,
            "command": "python benchmarks/generalize.py " + " ".join(args.argv)}
     if held_out:
@@ -295,6 +298,22 @@ def recipe_changes(changes: list[str]) -> dict:
     return train
 
 
+def ensure_vertex_share(model, specs: list[str], splits) -> dict:
+    """The run's fitted vertex share (model.json's ``completion``; ``meshseq.inbetween``), fitted on
+    the training segments of ``specs`` as training fits it where the run was stored without one
+    (set on ``model``). Returns it, and where it came from, for the record."""
+    from meshseq.training.data import load_training_data
+    from meshseq.training.loop import completion_fit
+
+    stored = model.meta.get("completion")
+    if stored is not None:
+        return {**stored, "source": "stored"}
+    data = load_training_data(specs, consistency=model.consistency, placement=model.placement)
+    fitted = completion_fit(data, splits, model.placement)
+    model.vertex_share = fitted["vertex_share"]
+    return {**fitted, "source": "fitted when scored"}
+
+
 def ensure_novelty(model, specs: list[str], splits) -> str:
     """Give a model stored before checkpoints held the training frames' latents and their steps
     (``meshseq.novelty``) the reference training would have stored: its latents of the training
@@ -323,6 +342,7 @@ def rescore(done: dict, run: Path, record: Path, specs: list[str], args, kind: s
         raise SystemExit(f"{run}: the newest checkpoint is iteration {model.iteration}, the record {done['iteration']}")
     splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
     done["novelty_reference"] = ensure_novelty(model, specs, splits)
+    done["vertex_share"] = ensure_vertex_share(model, specs, splits)
     for block in done["blocks"]:
         verts = load_sequence(block["sequence"]).vertices.astype(np.float64)
         update(model, block, verts, model.features(verts))

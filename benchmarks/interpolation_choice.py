@@ -14,7 +14,8 @@ rotation turned along its shortest path (``acap.interpolation.geodesic_interpola
 context pick: the same two interpolations over the
 frames given before key a and after key b (windows of ``min(gap, CONTEXT - 1)`` in-between frames
 ending on the keys), the one with the smaller error there. ``--blend W,...`` adds blends of the
-two, ``(1 - W)`` features + ``W`` vertices. RUN only supplies the mesh and the feature scaling: the
+two, ``(1 - W)`` features + ``W`` vertices (``--blend-with geodesic``: the geodesic features' frames
+instead of the straight line's). RUN only supplies the mesh and the feature scaling: the
 network is not used, so a run of one iteration serves.
 """
 
@@ -71,10 +72,12 @@ def context_errors(model, verts: np.ndarray, feats: np.ndarray, a: int, b: int, 
     return total
 
 
-def gap_table(model, verts: np.ndarray, gap: int, blends: tuple[float, ...] = ()) -> np.ndarray | None:
+def gap_table(model, verts: np.ndarray, gap: int, blends: tuple[float, ...] = (),
+              blend_with: str = "features") -> np.ndarray | None:
     """``(7 + len(blends),)`` mean in-between error of each ``COLUMNS`` entry, then of each blend
-    ``(1 - w)`` features + ``w`` vertices, over the better of features and vertices, over 12 gaps of
-    ``gap`` frames; None where the sequence is too short."""
+    ``(1 - w)`` features (``blend_with``: the straight line's or the ``geodesic`` one's) + ``w``
+    vertices, over the better of features and vertices, over 12 gaps of ``gap`` frames; None where
+    the sequence is too short."""
     from meshseq.align import per_vertex_error
     from meshseq.synthesize import assemble_vertices
 
@@ -90,10 +93,12 @@ def gap_table(model, verts: np.ndarray, gap: int, blends: tuple[float, ...] = ()
         e_f, e_v = per_vertex_error(in_f, truth).mean(), per_vertex_error(in_v, truth).mean()
         pick = context_errors(model, verts, feats, a, b, gap)
         own = assemble_vertices(model, feats[a:b + 1], {0: verts[a], gap + 1: verts[b]})[1:-1]
+        geo = geodesic_frames(model, verts, feats, a, b)
+        base = geo if blend_with == "geodesic" else in_f
         rows.append([e_f, e_v, per_vertex_error(0.5 * (in_f + in_v), truth).mean(),
                      e_v if pick[1] < pick[0] else e_f, min(e_f, e_v), per_vertex_error(own, truth).mean(),
-                     per_vertex_error(geodesic_frames(model, verts, feats, a, b), truth).mean()]
-                    + [per_vertex_error((1 - w) * in_f + w * in_v, truth).mean() for w in blends])
+                     per_vertex_error(geo, truth).mean()]
+                    + [per_vertex_error((1 - w) * base + w * in_v, truth).mean() for w in blends])
     means = np.mean(rows, axis=0)
     return means / min(means[0], means[1])
 
@@ -106,6 +111,8 @@ def main() -> None:
     p.add_argument("run", help="a trained run (its mesh and feature scaling)")
     p.add_argument("specs", nargs="+", help="sequences, each optionally SPEC@FIRST,LAST")
     p.add_argument("--blend", default="", help="blend weights W of the vertices, comma-separated")
+    p.add_argument("--blend-with", choices=("features", "geodesic"), default="features",
+                   help="what the vertices are blended with: the features' straight line or the geodesic one")
     args = p.parse_args()
     model = meshseq.load(args.run)
     blends = tuple(float(w) for w in args.blend.split(",") if w)
@@ -120,7 +127,7 @@ def main() -> None:
             verts = verts[slice(*frames)]
         cells = []
         for gap in GAPS:
-            row = gap_table(model, verts, gap, blends)
+            row = gap_table(model, verts, gap, blends, args.blend_with)
             if row is not None:
                 per_gap[gap].append(row)
                 cells.append(f"gap {gap}: " + " ".join(f"{x:.3f}" for x in row))

@@ -807,8 +807,9 @@ def test_keyframe_completion_samples_equal_sequential_single_sample_completions(
                           seed=seed * 1000 + s * 97 + i).frames[0][int(i > 0):] for i, gap in enumerate(gaps)]
         reference = _assemble_one_frame_at_a_time(model, np.concatenate(parts), anchors)
         np.testing.assert_allclose(batched[s], reference, rtol=0, atol=1e-5)
-    # one sample: the trained initial states, as a one-sample completion always had
-    one = complete_keyframes(model, v[frames], gaps, samples=1, seed=seed)
+    # one sample: the trained initial states, as a one-sample completion always had (without the
+    # vertex share's blend, tests/test_inbetween.py)
+    one = complete_keyframes(model, v[frames], gaps, samples=1, seed=seed, vertex_share=0.0)
     parts = [complete(model, key_f[i], key_f[i + 1], gap).frames[0][int(i > 0):] for i, gap in enumerate(gaps)]
     np.testing.assert_allclose(one[0], _assemble_one_frame_at_a_time(model, np.concatenate(parts), anchors),
                                rtol=0, atol=1e-5)
@@ -838,13 +839,14 @@ def test_batched_completion_errors_equal_the_per_start_reference(model, trained)
     roll-out; the reference completes each start alone with ``complete``, ours given the same
     frames around the keys (the paper's stitch, the keys alone)."""
     from meshseq import evaluate
-    from meshseq.synthesize import complete
+    from meshseq.synthesize import blend_toward_vertices, complete
 
     v = trained[2].vertices.astype(np.float64)
     feats = model.features(v)
     lo, hi, gap, samples, seed = 40, 60, 4, 3, 1
     got = evaluate.completion_errors(model, v, feats, lo, hi, [gap], ["ours", "stitch", "linear"],
-                                     samples=samples, seed=seed, max_starts=4, context=7)[str(gap)]
+                                     samples=samples, seed=seed, max_starts=4, context=7,
+                                     vertex_share=0.5)[str(gap)]
     starts = np.arange(lo, hi - gap - 1)
     starts = starts[np.linspace(0, len(starts) - 1, 4).astype(int)]
     assert got["starts"] == 4
@@ -853,8 +855,10 @@ def test_batched_completion_errors_equal_the_per_start_reference(model, trained)
         for s in starts:
             b = s + gap + 1
             around = {"before": feats[s - 7:s], "after": feats[b + 1:b + 1 + 7]} if method == "ours" else {}
-            f = complete(model, feats[s], feats[b], gap, join=join, **around).frames[0]  # stitch: the keys alone
-            verts = _assemble_one_frame_at_a_time(model, f, {0: v[s], gap + 1: v[s + gap + 1]})
+            done = complete(model, feats[s], feats[b], gap, join=join, **around)  # stitch: the keys alone
+            verts = _assemble_one_frame_at_a_time(model, done.frames[0], {0: v[s], gap + 1: v[s + gap + 1]})
+            if method == "ours":  # the line's share moved on toward the vertices' line (meshseq.inbetween)
+                verts = blend_toward_vertices(verts[None], 0.5 * done.line_share[:1])[0]
             errs.append(per_vertex_error(verts[1:-1], v[s + 1:s + gap + 1]).mean() / evaluate.UNITS)
         assert got[method] == pytest.approx(np.mean(errs), rel=1e-6, abs=1e-3)  # abs: 1e-7 data units
     diversity = []

@@ -61,6 +61,10 @@ class Model:
         scaling: the ``meshseq.acap.Scaling`` fitted on the training frames.
         novelty: the training frames' latents (``meshseq.novelty.NoveltyReference``), which
             prediction's guard measures given frames against; None for runs stored without.
+
+    ``vertex_share``: how far completion's line between two keys moves on toward the straight lines
+    between the keys' vertices (``meshseq.inbetween``), fitted on the training frames; 0 for runs
+    stored without it.
     """
 
     def __init__(self, net, meta: dict, reference: np.ndarray, faces: np.ndarray, device,
@@ -90,6 +94,7 @@ class Model:
         self.consistency, self.placement = feature_options(meta)
         self._reconstructor = reconstructor  # an acap.Reconstructor of (reference, faces); made when first needed
         self.novelty = novelty  # meshseq.novelty.NoveltyReference of the training frames, or None
+        self.vertex_share = float(meta.get("completion", {}).get("vertex_share", 0.0))
 
     def __repr__(self) -> str:
         c = self.config

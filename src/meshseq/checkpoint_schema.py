@@ -155,6 +155,7 @@ def model_meta_schema() -> dict:
         "features": Opt({"consistency": Opt(str), "reference": Opt(str), "placement": Opt(str)}),
         "validation": Opt({"error": float, "iteration": int}),
         "novelty": Opt({"step": float, "frames": int, "steps": Opt(bool)}),
+        "completion": Opt({"vertex_share": float, "scores": Opt(Each(float))}),
     }
 
 
@@ -212,6 +213,9 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
                               "step and at least one frame")
     if placement not in ("centroid", "anchor"):  # acap.parts.PLACEMENT_MODES
         raise CheckpointError(file, "features.placement", f"{placement!r}: expected centroid or anchor")
+    share = meta.get("completion", {}).get("vertex_share", 0.0)
+    if not 0.0 <= share <= 1.0:
+        raise CheckpointError(file, "completion.vertex_share", f"{share}: expected a share from 0 to 1")
 
 
 def feature_options(meta: dict) -> tuple[str, str]:

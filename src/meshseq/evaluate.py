@@ -22,8 +22,9 @@ from meshseq import baselines
 from meshseq.align import per_vertex_error
 from meshseq.errors import MeshseqError
 from meshseq.plots import feature_change as relative_change
-from meshseq.synthesize import (METHOD_JOINS, anchor_line, assemble_vertices, chain_states, complete_cma,
-                                join_chain_states, join_chains, predict, run_chains, run_context_chains)
+from meshseq.synthesize import (METHOD_JOINS, anchor_line, assemble_vertices, blend_toward_vertices, chain_states,
+                                complete_cma, join_chain_states, join_chains, line_shares, predict, run_chains,
+                                run_context_chains)
 
 UNITS = 1e-4  # errors are reported in the data's units x 1e-4 (paper's tables)
 
@@ -170,14 +171,15 @@ def feature_change(model, feats: np.ndarray, starts: np.ndarray, given: int, n_f
 def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, hi: int,
                       gaps: list[int], methods: list[str], samples: int = 4, seed: int = 0,
                       max_starts: int = 8, cma_evals: int = 200, cma_seconds: float = 20.0,
-                      context: int = 0, line: str = "geodesic") -> dict:
+                      context: int = 0, line: str = "geodesic", vertex_share: float | None = None) -> dict:
     """In-between errors (x 1e-4, centroid-aligned, mean over in-between frames and starts) for
     held-out gaps, and the diversity of ``samples`` random-state completions (ours).
 
     With ``context`` > 0 the chains of ours are given up to that many frames of the sequence before
     key a and after key b (``synthesize.complete``'s ``before`` / ``after``, the command's
     ``--context``); the other methods always the keys alone. ``line``: what ours' anchored join draws
-    toward (``synthesize.anchor_line``).
+    toward (``synthesize.anchor_line``); ``vertex_share``: how far the part of ours taken from it moves
+    on toward the vertices' straight lines (``synthesize.complete_keyframes``'; default the model's).
 
     Returns ``{str(gap): {method: error, ..., "diversity": d, "starts": n}}``.
     """
@@ -188,8 +190,9 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
             continue
         starts = starts[np.linspace(0, len(starts) - 1, min(max_starts, len(starts))).astype(int)]
         res: dict = {"starts": int(len(starts))}
-        frames = _completion_features(model, feats, starts, gap, methods, seed, cma_evals, cma_seconds, context,
-                                      line)
+        frames, line_share = _completion_features(model, feats, starts, gap, methods, seed, cma_evals, cma_seconds,
+                                                  context, line)
+        share = model.vertex_share if vertex_share is None else vertex_share
         for m in methods:
             errs = []
             for p, a in enumerate(starts):
@@ -198,6 +201,8 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
                     verts = baselines.linear_interpolation(vertices[a], vertices[b], gap)
                 else:
                     verts = assemble_vertices(model, frames[m][p], {0: vertices[a], gap + 1: vertices[b]})
+                if m == "ours" and share:
+                    verts = blend_toward_vertices(verts[None], share * line_share[p:p + 1])[0]
                 errs.append(per_vertex_error(verts[1:-1], vertices[a + 1:b]).mean() / UNITS)
             res[m] = float(np.mean(errs))
         if samples > 1:
@@ -208,13 +213,14 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
 
 def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int, methods: list[str], seed: int,
                          cma_evals: int, cma_seconds: float, context: int = 0,
-                         line: str = "geodesic") -> dict[str, np.ndarray]:
+                         line: str = "geodesic") -> tuple[dict[str, np.ndarray], np.ndarray | None]:
     """Scaled features ``(P, gap + 2, V, 9)`` of each feature-space method's completion of the gaps
-    ``feats[s] .. feats[s + gap + 1]`` for the P ``starts``. The chains of every start run as one
-    roll-out from the trained initial states (what ``complete`` does for one gap; ``context_chains``),
-    joined each way."""
+    ``feats[s] .. feats[s + gap + 1]`` for the P ``starts``, and ``(P,)`` the share of ours taken
+    from the line between the keys (``synthesize.line_shares``; None without ours). The chains of
+    every start run as one roll-out from the trained initial states (what ``complete`` does for
+    one gap; ``context_chains``), joined each way."""
     keys_a, keys_b = feats[starts], feats[starts + gap + 1]
-    out, chains = {}, {}
+    out, chains, line_share = {}, {}, None
     for m in methods:
         if m == "linear_vertices":
             continue
@@ -223,8 +229,11 @@ def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int,
             if frames_around not in chains:
                 chains[frames_around] = context_chains(model, feats, starts, gap, frames_around)
             fw, bw, trusted = chains[frames_around]
-            anchor = anchor_line(model, keys_a, keys_b, gap + 2, line) if METHOD_JOINS[m] == "anchored" else None
+            anchored = METHOD_JOINS[m] == "anchored"
+            anchor = anchor_line(model, keys_a, keys_b, gap + 2, line) if anchored else None
             f = join_chains(fw, bw, METHOD_JOINS[m], trusted=trusted, line=anchor)[0]
+            if m == "ours":
+                line_share = line_shares(fw, bw, trusted)
             f[:, 0], f[:, -1] = keys_a, keys_b
         elif m == "cma":  # one optimisation per gap (each batches its population)
             f = np.stack([complete_cma(model, a, b, gap, max_evals=cma_evals, max_seconds=cma_seconds,
@@ -234,7 +243,7 @@ def _completion_features(model, feats: np.ndarray, starts: np.ndarray, gap: int,
         else:
             raise MeshseqError(f"unknown completion method {m!r}; expected one of {baselines.COMPLETION_METHODS}")
         out[m] = f
-    return out
+    return out, line_share
 
 
 def context_chains(model, feats: np.ndarray, starts: np.ndarray, gap: int, context: int):

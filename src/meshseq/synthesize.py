@@ -243,13 +243,16 @@ class Completion:
 
     ``frames``: ``(S, n, V, 9)`` scaled features for S samples, ``frames[:, 0]`` = key a and
     ``frames[:, -1]`` = key b exactly; ``stitch``: ``(S,)`` frame index where the chains met;
-    ``gap``: ``(S,)`` feature distance between the chains there (RMS per entry).
+    ``gap``: ``(S,)`` feature distance between the chains there (RMS per entry); ``line_share``:
+    ``(S,)`` how much of each sample the anchored join took from the line between the keys
+    (``line_shares``; None for the other joins).
     """
 
     frames: np.ndarray
     stitch: np.ndarray
     gap: np.ndarray
     evaluations: int = 0  # roll-outs an optimiser used (CMA-ES); 0 for the chains
+    line_share: np.ndarray | None = None
 
 
 def uniform_states(shape: tuple[int, ...], seed: int | None, count: int = 2) -> list[np.ndarray]:
@@ -467,8 +470,7 @@ def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int
     if join == "anchored":
         if line is None:
             line = forward[:, :1] * (1 - ramp) + backward[:, :1] * ramp  # (P, n, V, C)
-        w = reach_weights(forward, backward)
-        w = (w if trusted is None else np.where(trusted, 1.0, w)).astype(forward.dtype)[:, None, None, None]
+        w = (1 - line_shares(forward, backward, trusted)).astype(forward.dtype)[:, None, None, None]
         frames = line + w * (frames - line)
     return frames, meets, gaps.astype(np.float64)
 
@@ -494,6 +496,13 @@ def anchor_line(model, keys_a: np.ndarray, keys_b: np.ndarray, n: int, line: str
     raw = model.scaling.invert(np.stack([a, b]).astype(np.float64))  # (2, P, V, C)
     frames = model.scaling.apply(geodesic_interpolation(raw[0], raw[1], n - 2))  # (n, P, V, C)
     return np.ascontiguousarray(frames.swapaxes(0, 1), dtype=a.dtype)
+
+
+def line_shares(forward: np.ndarray, backward: np.ndarray, trusted: np.ndarray | None = None) -> np.ndarray:
+    """``(P,)`` share of the line between the keys in the ``anchored`` join of P chain pairs
+    ``(P, n, V, C)``: ``1 - reach_weights``, 0 for the pairs ``trusted`` ``(P,)`` marks."""
+    w = reach_weights(forward, backward)
+    return 1.0 - (w if trusted is None else np.where(trusted, 1.0, w))
 
 
 def reach_weights(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
@@ -628,11 +637,12 @@ def complete(model, key_a, key_b, n_between: int, samples: int = 1, random_state
     if join == "anchored" and (before is not None or after is not None):  # one pair of keys: trusted once
         one = [None if c is None else c[:1] for c in (ctx_a, ctx_b)]
         trusted = np.repeat(context_trust(model, one[0], keys_a[:1], one[1], keys_b[:1]), samples)
-    anchor = anchor_line(model, keys_a, keys_b, n_between + 2, line) if join == "anchored" else None
+    anchored = join == "anchored"
+    anchor = anchor_line(model, keys_a, keys_b, n_between + 2, line) if anchored else None
     frames, meets, gaps = join_chains(forward, backward, join, blend, trusted=trusted, line=anchor)
     frames[:, 0] = np.asarray(key_a)
     frames[:, -1] = np.asarray(key_b)
-    return Completion(frames, meets, gaps)
+    return Completion(frames, meets, gaps, line_share=line_shares(forward, backward, trusted) if anchored else None)
 
 
 def complete_cma(model, key_a, key_b, n_between: int, max_evals: int = 400, max_seconds: float = 60.0,
@@ -680,7 +690,8 @@ def complete_cma(model, key_a, key_b, n_between: int, max_evals: int = 400, max_
 def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method: str = "ours",
                        samples: int = 1, seed: int = 0, cma_evals: int = 400,
                        cma_seconds: float = 60.0, before: np.ndarray | None = None,
-                       after: np.ndarray | None = None, line: str = "geodesic") -> np.ndarray:
+                       after: np.ndarray | None = None, line: str = "geodesic",
+                       vertex_share: float | None = None) -> np.ndarray:
     """Fill every gap between consecutive keyframes and return vertices through all of them.
 
     Args:
@@ -697,6 +708,9 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
             several samples (warming their random initial states up on the same frames would pull
             them together: on crane the diversity of 8 fell by 13%).
         line: what ``ours``' anchored join draws toward (``anchor_line``).
+        vertex_share: how far the part of ``ours`` taken from that line moves on toward the straight
+            lines between the keys' vertices (``blend_toward_vertices``); default the model's
+            (``meshseq.inbetween``: fitted on its training frames, 0 for runs trained before).
     Returns:
         ``(samples, K + sum(gaps), V, 3)`` vertices, exactly the keys at the key frames.
     """
@@ -712,13 +726,16 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
         return np.concatenate(parts)[None]
     warm = method == "ours" and samples == 1
     key_f, ctx_a, ctx_b = keyframe_features(model, keys, before if warm else None, after if warm else None)
-    parts, anchors, offset = [], {0: keys[0]}, 0
+    parts, anchors, offset, shares = [], {0: keys[0]}, 0, []
     for i, gap in enumerate(gaps):  # per gap; all samples of a gap run as one batched roll-out
         if method in METHOD_JOINS:
             seeds = [seed * 1000 + s * 97 + i for s in range(samples)] if samples > 1 else None
-            f = complete(model, key_f[i], key_f[i + 1], gap, seeds=seeds, join=sample_join(method, samples > 1),
-                         before=ctx_a if i == 0 else None, after=ctx_b if i == len(gaps) - 1 else None,
-                         line=line).frames
+            done = complete(model, key_f[i], key_f[i + 1], gap, seeds=seeds, join=sample_join(method, samples > 1),
+                            before=ctx_a if i == 0 else None, after=ctx_b if i == len(gaps) - 1 else None,
+                            line=line)
+            f = done.frames
+            if done.line_share is not None:
+                shares.append((offset, gap, done.line_share))
         elif method == "cma":
             f = complete_cma(model, key_f[i], key_f[i + 1], gap, max_evals=cma_evals,
                              max_seconds=cma_seconds, seed=seed + i).frames
@@ -727,7 +744,22 @@ def complete_keyframes(model, key_vertices: np.ndarray, gaps: list[int], method:
         parts.append(f if i == 0 else f[:, 1:])  # (samples, frames, V, 9)
         offset += gap + 1
         anchors[offset] = keys[i + 1]
-    return assemble_vertices(model, np.concatenate(parts, axis=1), anchors)
+    out = assemble_vertices(model, np.concatenate(parts, axis=1), anchors)
+    share = model.vertex_share if vertex_share is None else vertex_share
+    for start, gap, line_share in shares if share else ():
+        out[:, start:start + gap + 2] = blend_toward_vertices(out[:, start:start + gap + 2], share * line_share)
+    return out
+
+
+def blend_toward_vertices(frames: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """Completed vertices ``(P, n, V, 3)`` (keys first and last) moved toward the straight lines
+    between their keys by ``share`` ``(P,)`` (0: unchanged, 1: the lines); the keys stay."""
+    s = np.asarray(share, dtype=np.float64)
+    if not np.any(s):
+        return frames
+    ramp = np.linspace(0.0, 1.0, frames.shape[1])[None, :, None, None]
+    lines = frames[:, :1] * (1 - ramp) + frames[:, -1:] * ramp
+    return frames + s[:, None, None, None] * (lines - frames)
 
 
 def keyframe_features(model, keys: np.ndarray, before=None, after=None):

@@ -18,7 +18,9 @@ class TrainingData:
     """Raw ACAP features of one or more data sets sharing one connectivity.
 
     ``features[d]`` ``(T_d, V, 9)`` float64; ``reference`` ``(V, 3)`` the mesh the features
-    refer to (first frame of the first data set); ``faces`` ``(F, 3)`` int64.
+    refer to (first frame of the first data set); ``faces`` ``(F, 3)`` int64; ``vertices[d]``
+    ``(T_d, V, 3)`` the frames themselves where they were loaded (None for features given alone),
+    which completion's vertex share is fitted on (``meshseq.inbetween``).
     """
 
     names: list[str]
@@ -28,6 +30,7 @@ class TrainingData:
     reference: np.ndarray
     consistency: str = TrainConfig.consistency  # the rotation consistency the features were extracted with
     placement: str = TrainConfig.placement  # what the placement channels (several parts) measure from: acap.parts
+    vertices: list[np.ndarray] | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -67,7 +70,7 @@ def load_training_data(specs: list[str], consistency: str | None = None, placeme
     feats = [acap.extract(s.vertices, s.faces, reference=reference, consistency=consistency, placement_mode=placement)
              for s in seqs]
     return TrainingData([s.name for s in seqs], [str(sp) for sp in specs], feats, first.faces, reference, consistency,
-                        placement)
+                        placement, [s.vertices for s in seqs])
 
 
 def step_spread(scaled: list[np.ndarray], splits: list[Split], stride: int = 1) -> np.ndarray:

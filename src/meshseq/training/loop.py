@@ -182,6 +182,7 @@ class _Setup:
     splits: list[Split]
     scaled: list[np.ndarray]
     topology: Topology
+    completion: dict | None = None  # model.json's ``completion``: the fitted vertex share (meshseq.inbetween)
 
     @staticmethod
     def of(data: TrainingData, config: TrainConfig, model_options: dict | None, found, splits, world: int) -> "_Setup":
@@ -231,7 +232,21 @@ class _Setup:
             model_config.step_scale = [float(v) for v in step_spread(scaled, splits, config.stride)]
         if config.batch % world:
             raise MeshseqError(f"--batch {config.batch} must be a multiple of the number of processes ({world})")
-        return _Setup(config, model_config, scaling, splits, scaled, topo)
+        completion = found.meta.get("completion") if found is not None else None
+        if completion is None and data.vertices is not None:
+            completion = completion_fit(data, splits, config.placement)
+        return _Setup(config, model_config, scaling, splits, scaled, topo, completion)
+
+
+def completion_fit(data: TrainingData, splits: list[Split], placement: str) -> dict:
+    """``meshseq.inbetween.fit_vertex_share`` on the training segments of ``data`` (its loaded frames)."""
+    from meshseq.acap import Reconstructor
+    from meshseq.inbetween import fit_vertex_share
+
+    solver = Reconstructor(data.reference, data.faces, placement=placement)
+    segments = [(f[a:b], np.asarray(v[a:b], dtype=np.float64))
+                for f, v, split in zip(data.features, data.vertices, splits) for a, b in split.train]
+    return fit_vertex_share(segments, solver.solve)
 
 
 class _State:
@@ -474,6 +489,7 @@ class _Saver:
             "torch_version": torch.__version__,
             "world_size": self.dist_info.world,
             "novelty": {"step": novelty.step, "frames": int(len(novelty.latents)), "steps": True},
+            **({"completion": setup.completion} if setup.completion is not None else {}),
             **(extra or {}),
         }
         opt_t, opt_meta = ckpt.optimizer_state(st.optimizer, st.names)
