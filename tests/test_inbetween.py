@@ -102,3 +102,23 @@ def test_training_stores_the_fitted_share_and_completion_blends_the_lines_share_
     model.vertex_share = 0.5  # the model's share is the default
     np.testing.assert_array_equal(complete_keyframes(model, keys, [10])[0],
                                   complete_keyframes(model, keys, [10], vertex_share=0.5)[0])
+
+
+def test_complete_names_the_share_its_line_leans_by(run, tmp_path, capsys):
+    import json
+    import shutil
+
+    from meshseq import checkpoint as ckpt
+    from meshseq.cli import main
+
+    copy = tmp_path / "run"
+    shutil.copytree(run[0], copy)
+    for folder in ckpt.list_checkpoints(copy):
+        meta = json.loads((folder / "model.json").read_text())
+        meta["completion"] = {"vertex_share": 0.25}
+        (folder / "model.json").write_text(json.dumps(meta))
+    assert main(["complete", str(copy), str(run[1]), "--keyframes", "4,15", "-o", str(tmp_path / "a.npz")]) == 0
+    assert "its line 25% of the way to the keys' vertex lines" in capsys.readouterr().out
+    assert main(["complete", str(copy), str(run[1]), "--keyframes", "4,15", "--method", "corrected",
+                 "-o", str(tmp_path / "b.npz")]) == 0
+    assert "vertex lines" not in capsys.readouterr().out

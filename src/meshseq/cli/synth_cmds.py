@@ -73,14 +73,16 @@ def register(sub) -> None:
                    help=f"frames of DATA before the first key and after the last that ours' chains warm up on "
                    f"(default {CONTEXT}); where the keys look like the training frames and these frames move as "
                    "training does there (at its pace, where it went), ours keeps the chains' own motion instead "
-                   "of drawing it toward the straight line between the keys. 0: the keys alone (as --samples K "
+                   "of drawing it toward the line between the keys. 0: the keys alone (as --samples K "
                    "always: their random initial states stay apart)")
     p.add_argument("--samples", type=int, default=1, metavar="K",
                    help="K completions from random initial states (default 1: the trained states)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
     p.add_argument("--method", choices=COMPLETION_METHODS, default="ours",
                    help="ours (default: the two chains, each corrected to end on the far key, crossfaded, and "
-                   "drawn toward the straight line between the keys as far as they missed the far key), "
+                   "drawn toward the line between the keys as far as they missed the far key: the ACAP features "
+                   "with each local rotation turned the short way, blended toward the vertices' straight lines "
+                   "by the share the run fitted on its training frames), "
                    "corrected (the same without that pull), stitch (the same chains joined where they agree best, as in the paper), "
                    "cma (CMA-ES over the forward chain's initial state), linear "
                    "(interpolation of ACAP features) or linear_vertices (straight lines between the keys' "
@@ -315,7 +317,9 @@ def cmd_complete(args) -> int:
                                               cma_seconds=args.cma_seconds)
     if args.samples == 1:
         path = _write(samples_v[0], seq.faces, f"{seq.name}_completed", args, seq.fps)
-        print(f"wrote {path}: {len(samples_v[0])} frames through keyframes {keys} ({args.method})")
+        lean = model.vertex_share if args.method == "ours" else 0.0
+        note = f"; its line {lean:.0%} of the way to the keys' vertex lines, fitted in training" if lean else ""
+        print(f"wrote {path}: {len(samples_v[0])} frames through keyframes {keys} ({args.method}{note})")
         return 0
     diversity = baselines.pairwise_diversity(samples_v)
     fmt = args.format or "npz"
