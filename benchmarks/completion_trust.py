@@ -77,9 +77,15 @@ def main() -> None:
     p.add_argument("specs", nargs="+", help="sequences, each optionally SPEC@FIRST,STOP (a file in the shared "
                                             "data folder may be named alone)")
     p.add_argument("--rules", default="default,always,never", help="comma-separated: default, always, never, pace=P")
+    p.add_argument("--vertex-share", type=float, default=None, metavar="S",
+                   help="completion's vertex share (meshseq.inbetween; default the run's, fitted on its training "
+                        "frames as the benchmark fits it where the run was stored without)")
     args = p.parse_args()
     rules = {name: trust_rule(name) for name in args.rules.split(",")}
     model = meshseq.load(args.run)
+    generalize.ensure_vertex_share(model, *generalize.training_specs(model))
+    if args.vertex_share is not None:
+        model.vertex_share = args.vertex_share
     for spec in args.specs:
         path, frames = generalize.frames_spec(spec)
         verts = load_sequence(path).vertices.astype(np.float64)

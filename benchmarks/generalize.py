@@ -298,6 +298,13 @@ def recipe_changes(changes: list[str]) -> dict:
     return train
 
 
+def training_specs(model) -> tuple[list[str], list]:
+    """``(specs, splits)`` a run trained on, as its checkpoint names them."""
+    from meshseq.data.windows import Split
+
+    return [d["source"] for d in model.meta["datasets"]], [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
+
+
 def ensure_vertex_share(model, specs: list[str], splits) -> dict:
     """The run's fitted vertex share (model.json's ``completion``; ``meshseq.inbetween``), fitted on
     the training segments of ``specs`` as training fits it where the run was stored without one

@@ -23,6 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from completion_trust import trust_rule, trusting  # noqa: E402  (sibling scripts)
 from replay import ratios  # noqa: E402
+import generalize  # noqa: E402
 
 GAPS = (5, 10, 20, 30)
 
@@ -56,6 +57,7 @@ def main() -> None:
     args = p.parse_args()
     trust = trust_rule(args.trust)
     model = meshseq.load(args.run)
+    generalize.ensure_vertex_share(model, *generalize.training_specs(model))
     given = [int(u) for u in args.given.split(",")]
     rows: dict[str, list[np.ndarray]] = {f"u{u}": [] for u in given}
     if not args.prediction_only:

@@ -122,3 +122,31 @@ def test_complete_names_the_share_its_line_leans_by(run, tmp_path, capsys):
     assert main(["complete", str(copy), str(run[1]), "--keyframes", "4,15", "--method", "corrected",
                  "-o", str(tmp_path / "b.npz")]) == 0
     assert "vertex lines" not in capsys.readouterr().out
+
+
+def test_the_benchmark_fits_the_share_of_a_run_stored_without_one_as_training_does(run, tmp_path):
+    import importlib.util
+    import json
+    import shutil
+    from pathlib import Path
+
+    import meshseq
+    from meshseq import checkpoint as ckpt
+
+    path = Path(__file__).resolve().parent.parent / "benchmarks" / "generalize.py"
+    spec = importlib.util.spec_from_file_location("generalize_benchmark", path)
+    generalize = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(generalize)
+    stored = meshseq.load(run[0]).meta["completion"]
+    copy = tmp_path / "run"
+    shutil.copytree(run[0], copy)
+    for folder in ckpt.list_checkpoints(copy):  # as runs were stored before training fitted it
+        meta = json.loads((folder / "model.json").read_text())
+        del meta["completion"]
+        (folder / "model.json").write_text(json.dumps(meta))
+    model = meshseq.load(copy)
+    model.vertex_share = 0.75  # what the fit must replace
+    assert model.meta.get("completion") is None
+    got = generalize.ensure_vertex_share(model, *generalize.training_specs(model))
+    assert got == {**stored, "source": "fitted when scored"} and model.vertex_share == stored["vertex_share"]
+    assert generalize.ensure_vertex_share(meshseq.load(run[0]), [], [])["source"] == "stored"
