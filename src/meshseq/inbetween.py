@@ -22,7 +22,7 @@ VERTEX_SHARES = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: the gap lengths the share is fitted on (where interpolation is nearly right: the line matters most)
 FIT_GAPS = (5, 10)
 #: gaps per training segment and length (on crane's and pcow's training parts, 12 gaps moved the
-#: scores by up to 2% against every gap and picked other shares; 24 or more pick those of every gap)
+#: scores by up to 10% against every gap and picked other shares; 24 or more pick those of every gap)
 FIT_STARTS = 48
 #: a larger share is taken only where it lowers the score by more than this: a blend must gain half a
 #: percent over the smaller share (ties, and gains within what the choice of gaps moves, keep the features)
