@@ -48,7 +48,7 @@ PACE_UNNAMED = "warm-up"
 TRUST, TRUST_UNNAMED = "training", "warm-up"
 #: the line completion's anchored join draws toward: the geodesic one (``synthesize.anchor_line``)
 #: blended toward the vertices' by the run's fitted share (``meshseq.inbetween``, ``fitted``), or, in
-#: records scored before, the geodesic one alone or (records that name none) the straight one
+#: records scored before records named their line, the straight one
 LINE, LINE_UNNAMED = "fitted", "straight"
 
 
