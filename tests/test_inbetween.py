@@ -122,6 +122,10 @@ def test_complete_names_the_share_its_line_leans_by(run, tmp_path, capsys):
     assert main(["complete", str(copy), str(run[1]), "--keyframes", "4,15", "--method", "corrected",
                  "-o", str(tmp_path / "b.npz")]) == 0
     assert "vertex lines" not in capsys.readouterr().out
+    out = tmp_path / "scores.json"
+    assert main(["evaluate", str(copy), str(run[1]), "--range", "20:48", "--methods", "ours", "--given", "3",
+                 "--horizons", "4", "--gaps", "5", "--curve-frames", "4", "--json", str(out)]) == 0
+    assert any("25% of the way to the keys' vertex lines" in n for n in json.loads(out.read_text())["notes"])
 
 
 def test_the_benchmark_fits_the_share_of_a_run_stored_without_one_as_training_does(run, tmp_path):

@@ -395,6 +395,9 @@ def cmd_evaluate(args) -> int:
                                                        [m for m in methods if m != "zero_velocity"], vae,
                                                        guard=guard)
     if gaps:
+        if model.vertex_share:
+            result["notes"].append(f"ours' completion: its line between the keys {model.vertex_share:.0%} of the way "
+                                   "to the keys' vertex lines (the share fitted on the training frames)")
         result["completion"] = evaluate.completion_errors(
             model, vertices, feats, lo, hi, gaps, list(baselines.COMPLETION_METHODS), samples=args.samples,
             cma_evals=args.cma_evals, cma_seconds=args.cma_seconds, context=CONTEXT)
