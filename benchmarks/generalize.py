@@ -61,8 +61,8 @@ def scored_pace() -> str:
 
 def record_label(rec: dict, block: str = "") -> str:
     """``"bodies, 2000 it"``, with the seed where not 0, the pace and trust rules and completion's
-    line where not today's, and the rotation consistency where not today's default and it changes the features; ``block``
-    (``"@ 0.5"``, ``"unseen sequence"``) follows the set's name."""
+    line where not today's, and the rotation consistency where not today's default and it changes the
+    features; ``block`` (``"@ 0.5"``, ``"unseen sequence"``) follows the set's name."""
     seed = rec["train"].get("seed", 0)
     pace, trust = rec.get("pace", PACE_UNNAMED), rec.get("trust", TRUST_UNNAMED)
     anchor = rec.get("line", LINE_UNNAMED)

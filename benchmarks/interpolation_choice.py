@@ -48,12 +48,10 @@ def interpolations(model, verts: np.ndarray, feats: np.ndarray, a: int, b: int) 
 def geodesic_frames(model, verts: np.ndarray, feats: np.ndarray, a: int, b: int) -> np.ndarray:
     """In-between frames ``(b - a - 1, V, 3)`` of ``geodesic_interpolation`` from frame a to frame b,
     reconstructed through the keys as ``interpolations``' features are."""
-    from meshseq.acap.interpolation import geodesic_interpolation
-    from meshseq.synthesize import assemble_vertices
+    from meshseq.synthesize import anchor_line, assemble_vertices
 
     n = b - a - 1
-    raw = model.scaling.invert(feats[[a, b]].astype(np.float64))
-    inner = model.scaling.apply(geodesic_interpolation(raw[0], raw[1], n))
+    inner = anchor_line(model, feats[a][None].astype(np.float64), feats[b][None].astype(np.float64), n + 2)[0]
     return assemble_vertices(model, inner, {0: verts[a], n + 1: verts[b]})[1:-1]
 
 

@@ -184,6 +184,7 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
     Returns ``{str(gap): {method: error, ..., "diversity": d, "starts": n}}``.
     """
     out = {}
+    share = model.vertex_share if vertex_share is None else vertex_share
     for gap in gaps:
         starts = np.arange(lo, hi - gap - 1)
         if len(starts) == 0:
@@ -192,7 +193,6 @@ def completion_errors(model, vertices: np.ndarray, feats: np.ndarray, lo: int, h
         res: dict = {"starts": int(len(starts))}
         frames, line_share = _completion_features(model, feats, starts, gap, methods, seed, cma_evals, cma_seconds,
                                                   context, line)
-        share = model.vertex_share if vertex_share is None else vertex_share
         for m in methods:
             errs = []
             for p, a in enumerate(starts):

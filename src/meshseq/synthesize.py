@@ -469,7 +469,7 @@ def join_chains(forward: np.ndarray, backward: np.ndarray, join: str, blend: int
     frames -= np.multiply(ramp * (1 - ramp), miss[:, None], out=diff)
     if join == "anchored":
         if line is None:
-            line = forward[:, :1] * (1 - ramp) + backward[:, :1] * ramp  # (P, n, V, C)
+            line = keys_line(forward[:, 0], backward[:, 0], n)
         w = (1 - line_shares(forward, backward, trusted)).astype(forward.dtype)[:, None, None, None]
         frames = line + w * (frames - line)
     return frames, meets, gaps.astype(np.float64)
@@ -489,13 +489,19 @@ def anchor_line(model, keys_a: np.ndarray, keys_b: np.ndarray, n: int, line: str
         raise MeshseqError(f"unknown line {line!r}; expected one of {', '.join(LINES)}")
     a, b = np.asarray(keys_a), np.asarray(keys_b)
     if line == "straight":
-        ramp = np.linspace(0.0, 1.0, n).astype(a.dtype)[None, :, None, None]
-        return a[:, None] * (1 - ramp) + b[:, None] * ramp
+        return keys_line(a, b, n)
     from meshseq.acap.interpolation import geodesic_interpolation
 
     raw = model.scaling.invert(np.stack([a, b]).astype(np.float64))  # (2, P, V, C)
     frames = model.scaling.apply(geodesic_interpolation(raw[0], raw[1], n - 2))  # (n, P, V, C)
     return np.ascontiguousarray(frames.swapaxes(0, 1), dtype=a.dtype)
+
+
+def keys_line(keys_a: np.ndarray, keys_b: np.ndarray, n: int) -> np.ndarray:
+    """``(P, n, ...)`` straight lines from ``keys_a`` to ``keys_b`` ``(P, ...)``, keys included, in
+    their dtype."""
+    ramp = np.linspace(0.0, 1.0, n).astype(keys_a.dtype).reshape((1, n) + (1,) * (keys_a.ndim - 1))
+    return keys_a[:, None] * (1 - ramp) + keys_b[:, None] * ramp
 
 
 def line_shares(forward: np.ndarray, backward: np.ndarray, trusted: np.ndarray | None = None) -> np.ndarray:
@@ -757,9 +763,7 @@ def blend_toward_vertices(frames: np.ndarray, share: np.ndarray) -> np.ndarray:
     s = np.asarray(share, dtype=np.float64)
     if not np.any(s):
         return frames
-    ramp = np.linspace(0.0, 1.0, frames.shape[1])[None, :, None, None]
-    lines = frames[:, :1] * (1 - ramp) + frames[:, -1:] * ramp
-    return frames + s[:, None, None, None] * (lines - frames)
+    return frames + s[:, None, None, None] * (keys_line(frames[:, 0], frames[:, -1], frames.shape[1]) - frames)
 
 
 def keyframe_features(model, keys: np.ndarray, before=None, after=None):
