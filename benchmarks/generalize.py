@@ -208,7 +208,6 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     import meshseq
     from meshseq import checkpoint as ckpt
     from meshseq.checkpoint_schema import feature_options
-    from meshseq.data.windows import Split
     from meshseq.train import TrainConfig, load_training_data, train
 
     tag = f"{name}@{holdout_at}"
@@ -232,7 +231,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
     train(data, run, config, device=args.device, resume=resume, force=not resume, progress=not args.quiet)
     seconds = time.perf_counter() - t0
     model = meshseq.load(run)
-    splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
+    splits = training_splits(model.meta)
     reference = ensure_novelty(model, specs, splits)
     vertex_share = ensure_vertex_share(model, specs, splits)
     train_feats = np.concatenate([model.scaling.apply(f)[a:b] for f, s in zip(data.features, splits) for a, b in s.train])
@@ -300,9 +299,14 @@ def recipe_changes(changes: list[str]) -> dict:
 
 def training_specs(model) -> tuple[list[str], list]:
     """``(specs, splits)`` a run trained on, as its checkpoint names them."""
+    return [d["source"] for d in model.meta["datasets"]], training_splits(model.meta)
+
+
+def training_splits(meta: dict) -> list:
+    """The ``Split`` of each sequence a run trained on, from its model.json ``meta``."""
     from meshseq.data.windows import Split
 
-    return [d["source"] for d in model.meta["datasets"]], [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
+    return [Split.from_dict(d["split"]) for d in meta["datasets"]]
 
 
 def ensure_vertex_share(model, specs: list[str], splits) -> dict:
@@ -341,13 +345,12 @@ def rescore(done: dict, run: Path, record: Path, specs: list[str], args, kind: s
     """A finished record with some of its figures made again by today's code from the same checkpoint:
     ``update(model, block, verts, feats)`` for every block; the command is kept as ``KIND_command``."""
     import meshseq
-    from meshseq.data.windows import Split
     from meshseq.io import load_sequence
 
     model = meshseq.load(run)
     if model.iteration != done["iteration"]:
         raise SystemExit(f"{run}: the newest checkpoint is iteration {model.iteration}, the record {done['iteration']}")
-    splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
+    splits = training_splits(model.meta)
     done["novelty_reference"] = ensure_novelty(model, specs, splits)
     done["vertex_share"] = ensure_vertex_share(model, specs, splits)
     for block in done["blocks"]:
@@ -378,10 +381,9 @@ def rescore_prediction(done: dict, run: Path, record: Path, specs: list[str], ar
     """``rescore`` of ours' prediction figures (``motion_50`` and ``pace`` too); the baselines' are left
     as recorded (their code did not change; the VAE baseline would be trained again)."""
     from meshseq import checkpoint as ckpt
-    from meshseq.data.windows import Split
 
     meta = json.loads((ckpt.resolve(run) / "model.json").read_text())
-    train_level = training_level(specs, [Split.from_dict(d["split"]) for d in meta["datasets"]])
+    train_level = training_level(specs, training_splits(meta))
 
     def update(model, block, verts, feats):
         lo, hi = block["frames"]

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from generalize import ensure_novelty  # noqa: E402  (a sibling script: a run's reference made as it scores)
+from generalize import ensure_novelty, training_splits  # noqa: E402  (a sibling script: a run's reference made as it scores)
 
 H = 15
 CELLS = [4, 9, 14]  # h5, h10, h15
@@ -69,7 +69,6 @@ def vertex_errors(pred: np.ndarray, truth: np.ndarray, rigid: bool = False) -> n
 def main() -> None:
     import meshseq
     from meshseq import baselines, novelty
-    from meshseq.data.windows import Split
     from meshseq.io import load_sequence
     from meshseq.synthesize import predict
 
@@ -84,7 +83,7 @@ def main() -> None:
     p.add_argument("--trust-paces", default="", help="with --completion: score these PACE_TRUST values instead")
     args = p.parse_args()
     model = meshseq.load(args.run, backend="numpy")
-    ensure_novelty(model, args.train.split(","), [Split.from_dict(d["split"]) for d in model.meta["datasets"]])
+    ensure_novelty(model, args.train.split(","), training_splits(model.meta))
     if args.completion and args.trust_paces:
         trust_paces(model, args.specs, [float(t) for t in args.trust_paces.split(",")], args.unseen.split(","))
         return

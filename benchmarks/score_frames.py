@@ -31,11 +31,10 @@ def score_frames(run: str, spec: str, first: int, stop: int, guard: bool = True,
     the frames that run trained on (every sequence it trained on must be ``spec``); ``guard``: ours'
     predictions with the novelty guard; ``vertex_share``: completion's (default the run's)."""
     import meshseq
-    from meshseq.data.windows import Split
     from meshseq.io import load_sequence
 
     model = meshseq.load(run)
-    splits = [Split.from_dict(d["split"]) for d in model.meta["datasets"]]
+    splits = generalize.training_splits(model.meta)
     if len(splits) != 1:
         raise SystemExit(f"{run}: trained on {len(splits)} sequences; this scores a run of one capture")
     verts = load_sequence(spec).vertices.astype(np.float64)
