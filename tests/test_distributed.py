@@ -79,6 +79,7 @@ def test_two_cpu_ranks_hold_identical_weights(tmp_path):
     assert not torch.equal(ck["model.fc.weight"], first["model.fc.weight"])
     meta = json.loads((run / "checkpoints" / "00000004" / "model.json").read_text())
     assert meta["world_size"] == 2
+    assert 0.0 <= meta["completion"]["vertex_share"] <= 1.0  # fitted once, by rank 0, which writes model.json
 
 
 RESUME_SCRIPT = r"""

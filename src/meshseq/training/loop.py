@@ -105,7 +105,7 @@ def train(
     if dist_info.active:
         torch.distributed.barrier()
 
-    setup = _Setup.of(data, config, model_options, found, splits, dist_info.world)
+    setup = _Setup.of(data, config, model_options, found, splits, dist_info.world, main=is_main)
     config = setup.config
     if is_main and setup.topology.n_components > 1:
         log(f"the mesh has {setup.topology.n_components} separate parts: where each sits relative to the others "
@@ -185,7 +185,8 @@ class _Setup:
     completion: dict | None = None  # model.json's ``completion``: the fitted vertex share (meshseq.inbetween)
 
     @staticmethod
-    def of(data: TrainingData, config: TrainConfig, model_options: dict | None, found, splits, world: int) -> "_Setup":
+    def of(data: TrainingData, config: TrainConfig, model_options: dict | None, found, splits, world: int,
+           main: bool = True) -> "_Setup":
         from meshseq.acap import Scaling
         from meshseq.acap.parts import CHANNEL_COUNTS
 
@@ -233,7 +234,7 @@ class _Setup:
         if config.batch % world:
             raise MeshseqError(f"--batch {config.batch} must be a multiple of the number of processes ({world})")
         completion = found.meta.get("completion") if found is not None else None
-        if completion is None and data.vertices is not None:
+        if completion is None and data.vertices is not None and main:  # rank 0 writes model.json
             completion = completion_fit(data, splits, config.placement)
         return _Setup(config, model_config, scaling, splits, scaled, topo, completion)
 
