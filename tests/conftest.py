@@ -7,9 +7,11 @@ root, or ``$MESHSEQ_SHARED_DATA``). A test that needs it FAILS (never skips) whe
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -42,6 +44,17 @@ def shared_file(name: str) -> Path:
 def shared_data() -> Path:
     """The shared data folder (``../shared/data``); the test fails if it is missing."""
     return shared_data_dir()
+
+
+def benchmark_script(name: str):
+    """The module of ``benchmarks/NAME.py`` (its sibling scripts importable, as when it runs)."""
+    folder = str(REPO_ROOT / "benchmarks")
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+    spec = importlib.util.spec_from_file_location(f"{name}_benchmark", REPO_ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 @contextlib.contextmanager

@@ -1,21 +1,13 @@
 """benchmarks/fallback_turn.py: the turned fallbacks it measures keep a turning shape's shape."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-ROOT = Path(__file__).resolve().parent.parent
+from conftest import benchmark_script
 
 
 def _fallback_turn():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("fallback_turn_benchmark", ROOT / "benchmarks" / "fallback_turn.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return benchmark_script("fallback_turn")
 
 
 def _frames(rotations: list[Rotation], stretch: np.ndarray) -> np.ndarray:

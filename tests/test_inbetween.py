@@ -129,18 +129,14 @@ def test_complete_names_the_share_its_line_leans_by(run, tmp_path, capsys):
 
 
 def test_the_benchmark_fits_the_share_of_a_run_stored_without_one_as_training_does(run, tmp_path):
-    import importlib.util
     import json
     import shutil
-    from pathlib import Path
 
     import meshseq
+    from conftest import benchmark_script
     from meshseq import checkpoint as ckpt
 
-    path = Path(__file__).resolve().parent.parent / "benchmarks" / "generalize.py"
-    spec = importlib.util.spec_from_file_location("generalize_benchmark", path)
-    generalize = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(generalize)
+    generalize = benchmark_script("generalize")
     stored = meshseq.load(run[0]).meta["completion"]
     copy = tmp_path / "run"
     shutil.copytree(run[0], copy)

@@ -1,21 +1,13 @@
 """benchmarks/motion_rules.py: the roll-out rules it measures do what their names say."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-ROOT = Path(__file__).resolve().parent.parent
+from conftest import benchmark_script
 
 
 def _motion_rules():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("motion_rules_benchmark", ROOT / "benchmarks" / "motion_rules.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return benchmark_script("motion_rules")
 
 
 def _features(rotations: Rotation, stretch: np.ndarray) -> np.ndarray:

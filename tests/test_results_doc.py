@@ -3,20 +3,18 @@ makes from the stored records (docs/results/*.json), not typed by hand."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 from pathlib import Path
+
+from conftest import benchmark_script
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDS = ROOT / "docs" / "results"
 
 
 def _paper():
-    spec = importlib.util.spec_from_file_location("paper_benchmark", ROOT / "benchmarks" / "paper.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return benchmark_script("paper")
 
 
 def _generate(paper, records: Path, tmp_path: Path) -> tuple[str, str]:
@@ -77,10 +75,7 @@ def test_the_generalisation_table_follows_its_records(tmp_path):
 
 
 def _generalize():
-    spec = importlib.util.spec_from_file_location("generalize_benchmark", ROOT / "benchmarks" / "generalize.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return benchmark_script("generalize")
 
 
 def _scale_ours(rec: dict, factor: float) -> None:

@@ -356,18 +356,11 @@ def test_completion_trust_benchmark_scores_the_default_as_the_benchmark_and_puts
     """benchmarks/completion_trust.py: its ``default`` is the benchmark's own completion figures; a
     rule holds only inside ``trusting`` (also when scoring fails); ``always`` trusts at least where
     the default does and changes ours where the default does not trust every pair."""
-    import importlib.util
-    import sys
-    from pathlib import Path
-
     import meshseq.synthesize as syn
+    from conftest import benchmark_script
     from meshseq.evaluate import completion_errors
 
-    bench = Path(__file__).resolve().parent.parent / "benchmarks"
-    sys.path.insert(0, str(bench))
-    spec = importlib.util.spec_from_file_location("completion_trust_benchmark", bench / "completion_trust.py")
-    ct = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(ct)
+    ct = benchmark_script("completion_trust")
     v = trained[2].vertices.astype(np.float64)
     f = model.features(v)
     own = completion_errors(model, v, f, 10, 40, [5, 10, 20], ["ours", "linear", "linear_vertices"], samples=1,
