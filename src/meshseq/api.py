@@ -20,6 +20,7 @@ import os
 import numpy as np
 
 from meshseq import checkpoint as ckpt
+from meshseq.carry import CARRY
 from meshseq.checkpoint_schema import feature_options
 from meshseq.errors import MeshseqError
 from meshseq.model_config import ModelConfig
@@ -64,6 +65,8 @@ class Model:
 
     ``vertex_share``: how far completion's line between two keys moves on toward the straight lines
     between the keys' vertices (``meshseq.inbetween``), fitted on the training frames; 0 for runs
+    stored without it. ``carry``: the share of the given frames' velocity prediction carries into
+    the roll-out (``meshseq.carry``), fitted on the training frames; ``synthesize.CARRY`` for runs
     stored without it.
     """
 
@@ -95,6 +98,7 @@ class Model:
         self._reconstructor = reconstructor  # an acap.Reconstructor of (reference, faces); made when first needed
         self.novelty = novelty  # meshseq.novelty.NoveltyReference of the training frames, or None
         self.vertex_share = float(meta.get("completion", {}).get("vertex_share", 0.0))
+        self.carry = float(meta.get("prediction", {}).get("carry", CARRY))
 
     def __repr__(self) -> str:
         c = self.config
@@ -240,12 +244,10 @@ class Model:
         ``frames``: given vertices ``(U, V, 3)`` -> vertices ``(U + n, V, 3)``: the given frames
         (exactly), then ``n`` generated ones continuing from the last; or scaled features
         ``(U, V, 9)`` -> the generated features ``(n, V, 9)``. ``pace``, ``guard`` (the novelty
-        guard; False: the roll-out alone) and ``carry`` (None: ``synthesize.CARRY``; 0: the model's
-        steps as they are): see ``meshseq.synthesize.predict``.
+        guard; False: the roll-out alone) and ``carry`` (None: the model's own, ``carry``; 0: the
+        model's steps as they are): see ``meshseq.synthesize.predict``.
         """
         from meshseq import synthesize
-
-        carry = synthesize.CARRY if carry is None else carry
 
         f = np.asarray(frames)
         c = self.config.channels

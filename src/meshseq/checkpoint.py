@@ -164,6 +164,18 @@ def save_checkpoint(
     return final
 
 
+def add_model_meta(folder: str | os.PathLike, fields: dict) -> None:
+    """Add ``fields`` to the model.json of checkpoint ``folder`` (replaced atomically; its tensors, and
+    so their SHA-256, untouched): what training fits from the finished model."""
+    from meshseq.checkpoint_schema import check_model_meta
+
+    path = Path(folder) / MODEL_META
+    meta = {**_read_json(path), **fields}
+    check_model_meta(meta, path)
+    with atomic_output(path, force=True) as tmp:
+        _write_json(tmp, meta)
+
+
 def list_checkpoints(run_dir: str | os.PathLike) -> list[Path]:
     """Checkpoint folders of a run, oldest first (by iteration)."""
     root = checkpoint_root(run_dir)

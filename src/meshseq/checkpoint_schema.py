@@ -156,6 +156,7 @@ def model_meta_schema() -> dict:
         "validation": Opt({"error": float, "iteration": int}),
         "novelty": Opt({"step": float, "frames": int, "steps": Opt(bool)}),
         "completion": Opt({"vertex_share": float, "scores": Opt(Each(float))}),
+        "prediction": Opt({"carry": float, "scores": Opt(Each(float))}),
     }
 
 
@@ -216,6 +217,9 @@ def check_model_meta(meta, file: Path, iteration: int | None = None) -> None:
     share = meta.get("completion", {}).get("vertex_share", 0.0)
     if not 0.0 <= share <= 1.0:
         raise CheckpointError(file, "completion.vertex_share", f"{share}: expected a share from 0 to 1")
+    carry = meta.get("prediction", {}).get("carry", 0.0)
+    if not 0.0 <= carry < 1.0:
+        raise CheckpointError(file, "prediction.carry", f"{carry}: expected a share in [0, 1)")
 
 
 def feature_options(meta: dict) -> tuple[str, str]:

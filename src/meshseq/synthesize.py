@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from meshseq import novelty
+from meshseq.carry import CARRY
 from meshseq.acap.parts import PLACEMENT_CHANNELS as PLACEMENT
 from meshseq.errors import MeshseqError
 
@@ -69,11 +70,6 @@ def pace_factor(given_steps: np.ndarray, expected_steps: np.ndarray) -> np.ndarr
     return np.minimum(given_steps.mean(1) / np.maximum(expected_steps.mean(1), 1e-12), 1.0)
 
 
-#: A frame's share of the difference between the given velocity and the model's first step, which
-#: fades into the model's own motion (``carried_steps``). 0: the model's steps as they are (the paper's).
-CARRY = 0.6
-
-
 def carried_steps(given: np.ndarray, generated: np.ndarray, carry: float = CARRY) -> np.ndarray:
     """``generated`` ``(B, n, V, C)`` with the given frames' velocity carried into its first steps:
     step t (from 1) becomes ``s_t + carry**t (v - s_1)``, ``s_t`` the generated steps and ``v`` the
@@ -112,7 +108,7 @@ def continued_placement(given: np.ndarray, generated: np.ndarray) -> np.ndarray:
 
 def predict(model, given, n_frames: int, state=None, sample: bool = False,
             bound: float | None = FEATURE_BOUND, pace: str = "given",
-            continue_placement: bool | None = None, guard: bool = True, carry: float = CARRY) -> np.ndarray:
+            continue_placement: bool | None = None, guard: bool = True, carry: float | None = None) -> np.ndarray:
     """Generate ``n_frames`` frames after the given ones.
 
     Args:
@@ -140,12 +136,15 @@ def predict(model, given, n_frames: int, state=None, sample: bool = False,
             False: the roll-out as it is (the paper's).
         carry: with U >= 2 the generated steps start from the given frames' velocity, its
             difference from the model's first step fading by this share a frame (``carried_steps``);
-            0: the model's steps as they are (the paper's).
+            None (default): the model's own (``model.carry``, fitted on its training frames:
+            ``meshseq.carry``); 0: the model's steps as they are (the paper's).
     Returns:
         ``(n_frames, V, 9)`` (or ``(B, n_frames, V, 9)``) generated scaled features.
     """
     if pace not in PACES:
         raise MeshseqError(f"unknown pace {pace!r}; expected one of {', '.join(PACES)}")
+    if carry is None:
+        carry = getattr(model, "carry", CARRY)
     if not 0.0 <= carry < 1.0:
         raise MeshseqError(f"carry {carry!r}: expected a share in [0, 1) (0: the model's steps as they are)")
     x = _frames(given)

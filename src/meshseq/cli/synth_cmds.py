@@ -53,10 +53,10 @@ def register(sub) -> None:
                    "where no training frame near them went, blend the roll-out towards the given motion "
                    "continued and slowing (the model's own motion there is a guess); off: the roll-out "
                    "alone (the paper's)")
-    p.add_argument("--carry", type=float, default=CARRY, metavar="SHARE",
-                   help=f"with --given 2 or more, the generated steps start from the given frames' velocity, its "
-                   f"difference from the model's own fading by this share a frame (default {CARRY}); 0: the "
-                   "model's steps as they are (the paper's)")
+    p.add_argument("--carry", type=float, default=None, metavar="SHARE",
+                   help="with --given 2 or more, the generated steps start from the given frames' velocity, its "
+                   "difference from the model's own fading by this share a frame (default: the run's, fitted on "
+                   f"its training frames; {CARRY} for older runs); 0: the model's steps as they are (the paper's)")
     _output(p)
     p.set_defaults(func=cmd_predict)
 
@@ -232,7 +232,7 @@ def cmd_predict(args) -> int:
         raise MeshseqError(f"--given {args.given}: expected at least 1")
     if args.frames < 1:
         raise MeshseqError(f"--frames {args.frames}: expected at least 1")
-    if not 0 <= args.carry < 1:
+    if args.carry is not None and not 0 <= args.carry < 1:
         raise MeshseqError(f"--carry {args.carry}: expected a share in [0, 1) (0: the model's steps as they are)")
     model, seq = _load(args, backend)
     if not 0 <= args.start < seq.n_frames:

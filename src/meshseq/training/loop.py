@@ -154,6 +154,8 @@ def train(
             monitor.close()
         if dist_info.started_here:
             torch.distributed.destroy_process_group()
+    if is_main and last["checkpoint"] is not None and data.vertices is not None:
+        carry_fit(last["checkpoint"], data, setup)
     best = monitor.best if monitor is not None else None
     if st.average is not None:  # return what the checkpoints deliver
         copy_weights(st.params, st.average)
@@ -248,6 +250,20 @@ def completion_fit(data: TrainingData, splits: list[Split], placement: str) -> d
     segments = [(f[a:b], np.asarray(v[a:b], dtype=np.float64))
                 for f, v, split in zip(data.features, data.vertices, splits) for a, b in split.train]
     return fit_vertex_share(segments, solver.solve)
+
+
+def carry_fit(folder: str, data: TrainingData, setup: "_Setup") -> None:
+    """``meshseq.carry.fit_carry`` of the checkpoint ``folder`` (the finished model) on the training
+    segments of ``data`` (its loaded frames), added to its model.json as ``prediction`` (once)."""
+    import meshseq
+    from meshseq.carry import fit_carry
+
+    model = meshseq.load(folder)
+    if "prediction" in model.meta:
+        return
+    segments = [(f[a:b].astype(np.float32), np.asarray(v[a:b], dtype=np.float64))
+                for f, v, split in zip(setup.scaled, data.vertices, setup.splits) for a, b in split.train]
+    ckpt.add_model_meta(folder, {"prediction": fit_carry(model, segments)})
 
 
 class _State:

@@ -1,0 +1,67 @@
+"""Prediction's carried velocity (``meshseq.carry``): fitted on the training frames, stored by
+training, read by the model and used by ``predict`` unless asked otherwise."""
+
+import json
+
+import numpy as np
+import pytest
+
+from meshseq.data.synthetic import twisting_limb
+
+
+def test_the_body_sets_share_stays_unless_a_smaller_one_is_clearly_better():
+    from meshseq.carry import CARRIES, CARRY, MARGIN, choose_carry
+
+    assert CARRIES[-1] == CARRY and list(CARRIES) == sorted(CARRIES)
+    assert choose_carry(np.array([0.50, 0.49, 0.48])) == CARRY
+    assert choose_carry(np.array([0.49, 0.49, 0.48 + MARGIN / 2])) == CARRY  # within the margin
+    assert choose_carry(np.array([0.64, 0.71, 0.96])) == CARRIES[0]  # a gallop: carrying overshoots
+    assert choose_carry(np.array([0.60, 0.50, 0.55])) == CARRIES[1]  # the best of the smaller ones
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    from meshseq.io import save_sequence
+    from meshseq.train import TrainConfig, load_training_data, train
+
+    folder = tmp_path_factory.mktemp("carry")
+    save_sequence(twisting_limb(frames=40, rings=8, segments=6), folder / "limb.npz")
+    config = TrainConfig(iterations=6, window=8, batch=4, checkpoint_every=3, log_every=1)
+    train(load_training_data([str(folder / "limb.npz")]), folder / "run", config, {"latent": 16, "lstm_layers": 1},
+          device="cpu", progress=False, log=None)
+    return folder
+
+
+def test_training_stores_the_fitted_carry_and_prediction_uses_it(run):
+    import meshseq
+    from meshseq.carry import CARRIES, choose_carry
+    from meshseq.io import load_sequence
+    from meshseq.synthesize import predict
+
+    model = meshseq.load(run / "run")
+    fitted = model.meta["prediction"]
+    scores = np.array([fitted["scores"][f"{c:g}"] for c in CARRIES])
+    assert np.isfinite(scores).all() and model.carry == fitted["carry"] == choose_carry(scores)
+    earlier = json.loads((run / "run" / "checkpoints" / "00000003" / "model.json").read_text())
+    assert "prediction" not in earlier  # fitted on the finished model only
+    x = model.features(load_sequence(str(run / "limb.npz")).vertices[10:13].astype(np.float64))
+    other = 0.3 if model.carry != 0.3 else 0.0
+    model.carry = other
+    np.testing.assert_array_equal(predict(model, x, 8), predict(model, x, 8, carry=other))
+    assert not np.array_equal(predict(model, x, 8), predict(model, x, 8, carry=0.59))
+
+
+def test_a_stored_carry_outside_zero_to_one_is_refused(run, tmp_path):
+    import shutil
+
+    import meshseq
+    from meshseq.errors import MeshseqError
+
+    copy = tmp_path / "run"
+    shutil.copytree(run / "run", copy)
+    meta_path = copy / "checkpoints" / "00000006" / "model.json"
+    meta = json.loads(meta_path.read_text())
+    meta["prediction"]["carry"] = 1.0
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(MeshseqError, match="prediction.carry"):
+        meshseq.load(copy / "checkpoints" / "00000006")
