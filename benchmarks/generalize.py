@@ -241,7 +241,7 @@ def run_set(name: str, specs: list[str], scored: list[tuple[int | None, str]], a
         blocks.append(block)
         print(line(tag, block), flush=True)
     out = {"set": name, "holdout_at": holdout_at, "iteration": model.iteration, "seconds_training": seconds,
-           "pace": scored_pace(), "trust": TRUST, "line": LINE, "vertex_share": vertex_share,
+           "pace": scored_pace(), "trust": TRUST, "line": LINE, "vertex_share": vertex_share, "carry": run_carry(model),
            "train": model.meta["train"], "novelty_reference": reference,
            "blocks": blocks,
            "command": "python benchmarks/generalize.py " + " ".join(args.argv)}
@@ -325,6 +325,16 @@ def ensure_vertex_share(model, specs: list[str], splits) -> dict:
     return {**fitted, "source": "fitted when scored"}
 
 
+def run_carry(model) -> dict:
+    """The carried velocity the run's predictions use, for the record: fitted at the end of its
+    training (model.json's ``prediction``; ``meshseq.carry``), or the body set's share for a run
+    stored without one."""
+    from meshseq.carry import CARRY
+
+    stored = model.meta.get("prediction")
+    return {**stored, "source": "stored"} if stored is not None else {"carry": CARRY, "source": "not fitted"}
+
+
 def ensure_novelty(model, specs: list[str], splits) -> str:
     """Give a model stored before checkpoints held the training frames' latents and their steps
     (``meshseq.novelty``) the reference training would have stored: its latents of the training
@@ -353,6 +363,7 @@ def rescore(done: dict, run: Path, record: Path, specs: list[str], args, kind: s
     splits = training_splits(model.meta)
     done["novelty_reference"] = ensure_novelty(model, specs, splits)
     done["vertex_share"] = ensure_vertex_share(model, specs, splits)
+    done["carry"] = run_carry(model)
     for block in done["blocks"]:
         verts = load_sequence(block["sequence"]).vertices.astype(np.float64)
         update(model, block, verts, model.features(verts))
