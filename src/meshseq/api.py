@@ -20,7 +20,6 @@ import os
 import numpy as np
 
 from meshseq import checkpoint as ckpt
-from meshseq.carry import CARRY
 from meshseq.checkpoint_schema import feature_options
 from meshseq.errors import MeshseqError
 from meshseq.model_config import ModelConfig
@@ -72,6 +71,7 @@ class Model:
 
     def __init__(self, net, meta: dict, reference: np.ndarray, faces: np.ndarray, device,
                  reconstructor=None, novelty=None):
+        from meshseq import synthesize
         from meshseq.acap import Scaling
         from meshseq.numpy_net import NumpyNet
 
@@ -98,7 +98,7 @@ class Model:
         self._reconstructor = reconstructor  # an acap.Reconstructor of (reference, faces); made when first needed
         self.novelty = novelty  # meshseq.novelty.NoveltyReference of the training frames, or None
         self.vertex_share = float(meta.get("completion", {}).get("vertex_share", 0.0))
-        self.carry = float(meta.get("prediction", {}).get("carry", CARRY))
+        self.carry = float(meta.get("prediction", {}).get("carry", synthesize.CARRY))
 
     def __repr__(self) -> str:
         c = self.config

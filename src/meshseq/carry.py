@@ -13,10 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-#: A frame's share of the difference between the given velocity and the model's first step, which
-#: fades into the model's own motion (``synthesize.carried_steps``), chosen on the body set: a run's
-#: own where training stored none. 0: the model's steps as they are (the paper's).
-CARRY = 0.6
+from meshseq.synthesize import CARRY, predict
+
 #: the shares tried (0: the model's steps as they are; the largest: the body set's ``synthesize.CARRY``)
 CARRIES = (0.0, 0.3, CARRY)
 #: a smaller share is taken only where it lowers the score by more than this (2%): where the training
@@ -36,7 +34,6 @@ def carry_errors(model, segments: list[tuple[np.ndarray, np.ndarray]], carries=C
     h5 / h10 / h15 over every start of ``segments`` (``(scaled features (T, V, C), vertices (T, V, 3))``
     each), ours by ``synthesize.predict`` with each carry."""
     from meshseq.align import per_vertex_error
-    from meshseq.synthesize import predict
 
     cells = np.array(HORIZONS) - 1
     ours, zero = np.zeros((len(carries), len(cells))), np.zeros(len(cells))

@@ -28,7 +28,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from meshseq import novelty
-from meshseq.carry import CARRY
 from meshseq.acap.parts import PLACEMENT_CHANNELS as PLACEMENT
 from meshseq.errors import MeshseqError
 
@@ -68,6 +67,12 @@ def pace_factor(given_steps: np.ndarray, expected_steps: np.ndarray) -> np.ndarr
     factor and a motion at the model's pace gives 1. The roll-out is never sped up.
     """
     return np.minimum(given_steps.mean(1) / np.maximum(expected_steps.mean(1), 1e-12), 1.0)
+
+
+#: A frame's share of the difference between the given velocity and the model's first step, which
+#: fades into the model's own motion (``carried_steps``), chosen on the body set: a run's own
+#: (``meshseq.carry``) where training stored one. 0: the model's steps as they are (the paper's).
+CARRY = 0.6
 
 
 def carried_steps(given: np.ndarray, generated: np.ndarray, carry: float = CARRY) -> np.ndarray:
