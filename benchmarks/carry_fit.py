@@ -1,13 +1,12 @@
-"""Which carried velocity a run's own training frames favour (method.md, "What the generalisation
-benchmark leaves unmet"): prediction's ``carry`` scored where a fit may look, as the vertex share
-is fitted for completion.
+"""The carried velocity's fit (``meshseq.carry``) on any run: the scores training stores, for a run
+stored before it or for other shares (method.md, "5. Synthesis").
 
-    python benchmarks/carry_fit.py RUN [--carries 0,0.4,0.6,0.8] [--every 4]
+    python benchmarks/carry_fit.py RUN [--carries 0,0.3,0.6]
 
 Over the training segments of RUN (as its checkpoint names them; their files must be readable
-where it says): 3 given frames, starts every ``--every`` frames inside each segment, ours
-(``predict``'s default but the carry) over zero velocity at h5 / h10 / h15 (centroid-aligned, the
-errors summed over every start before the ratio), and the mean of the three.
+where it says), as ``meshseq.carry.fit_carry`` scores them: 3 given frames, a start every 4 frames
+inside each segment, ours with each carry over zero velocity at h5 / h10 / h15 (centroid-aligned,
+errors summed over every start before the ratio), their mean, and the share the fit picks.
 """
 
 from __future__ import annotations
@@ -19,65 +18,39 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from generalize import training_specs  # noqa: E402  (sibling scripts)
-from novelty_guard import H as HORIZON, vertex_errors  # noqa: E402
-
-GIVEN = 3
+from generalize import training_specs  # noqa: E402  (a sibling script)
 
 
-def segment_windows(verts: np.ndarray, feats: np.ndarray, lo: int, hi: int, every: int):
-    """Starts inside ``[lo, hi)`` of a sequence (vertices ``(T, V, 3)``, scaled features ``(T, V, C)``)
-    with ``GIVEN`` frames and ``HORIZON`` after them: ``(given features (B, U, V, C), true vertices
-    (B, H, V, 3), the last given frame held (B, H, V, 3))``, or None where none fits."""
-    from meshseq.evaluate import prediction_starts
-
-    starts = prediction_starts(lo, hi, GIVEN, HORIZON, every)
-    if not len(starts):
-        return None
-    x = np.stack([feats[s:s + GIVEN] for s in starts])
-    truth = np.stack([verts[s + GIVEN:s + GIVEN + HORIZON] for s in starts])
-    held = np.repeat(verts[starts + GIVEN - 1][:, None], HORIZON, 1)
-    return x, truth, held
-
-
-def carry_errors(model, carries: list[float], every: int) -> tuple[dict[float, np.ndarray], np.ndarray]:
-    """``({carry: (3,) summed error at h5 / h10 / h15}, (3,) zero velocity's)`` over the training
-    segments of the run ``model``."""
+def training_segments(model) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(scaled features (T, V, C), vertices (T, V, 3))`` of each training segment of the run ``model``."""
     from meshseq.io import load_sequence
-    from meshseq.synthesize import predict
 
-    ours = {c: np.zeros(3) for c in carries}
-    zero = np.zeros(3)
+    out = []
     for spec, split in zip(*training_specs(model)):
         verts = load_sequence(spec).vertices.astype(np.float64)
         feats = model.features(verts)
-        for lo, hi in split.train:
-            windows = segment_windows(verts, feats, lo, hi, every)
-            if windows is None:
-                continue
-            x, truth, held = windows
-            zero += vertex_errors(held, truth) * len(x)
-            for c in carries:
-                f = predict(model, x, HORIZON, carry=c)
-                pred = model.vertices(f.reshape(-1, *f.shape[2:])).reshape(truth.shape)
-                ours[c] += vertex_errors(pred, truth) * len(x)
-    return ours, zero
+        out += [(feats[a:b], verts[a:b]) for a, b in split.train]
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
+    import meshseq
+    from meshseq.carry import CARRIES, carry_errors, choose_carry
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("run", help="a trained run")
-    p.add_argument("--carries", default="0,0.4,0.6,0.8", help="carried-velocity shares to score")
-    p.add_argument("--every", type=int, default=4, help="a start every K frames")
+    p.add_argument("--carries", default=",".join(f"{c:g}" for c in CARRIES),
+                   help="carried-velocity shares to score, ascending (the fit's by default)")
     args = p.parse_args(argv)
-    import meshseq
-
+    carries = [float(c) for c in args.carries.split(",")]
     model = meshseq.load(args.run)
-    ours, zero = carry_errors(model, [float(c) for c in args.carries.split(",")], args.every)
-    print(f"{args.run}: its training segments, u{GIVEN}, ours over zero velocity at h5 / h10 / h15, mean")
-    for c, err in ours.items():
-        ratio = err / np.maximum(zero, 1e-300)
-        print(f"  carry {c:<4g} " + " / ".join(f"{r:.3f}" for r in ratio) + f"   {ratio.mean():.3f}", flush=True)
+    ours, zero = carry_errors(model, training_segments(model), carries)
+    ratios = ours / np.maximum(zero, 1e-300)
+    print(f"{args.run}: its training segments, u3, ours over zero velocity at h5 / h10 / h15, mean")
+    for c, r in zip(carries, ratios):
+        print(f"  carry {c:<4g} " + " / ".join(f"{x:.3f}" for x in r) + f"   {r.mean():.3f}", flush=True)
+    print(f"  fitted: {choose_carry(ratios.mean(axis=1), carries):g}; stored: "
+          f"{model.meta.get('prediction', {}).get('carry', 'none')}")
 
 
 if __name__ == "__main__":

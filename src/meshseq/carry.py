@@ -29,12 +29,19 @@ def segment_starts(n_frames: int, stride: int = STRIDE) -> np.ndarray:
     return np.arange(0, max(n_frames - GIVEN - max(HORIZONS) + 1, 0), stride)
 
 
-def carry_errors(model, segments: list[tuple[np.ndarray, np.ndarray]], carries=CARRIES) -> tuple[np.ndarray, np.ndarray]:
-    """``(ours (len(carries), 3), zero velocity (3,))``: summed mean vertex error (centroid-aligned) at
-    h5 / h10 / h15 over every start of ``segments`` (``(scaled features (T, V, C), vertices (T, V, 3))``
-    each), ours by ``synthesize.predict`` with each carry."""
+def summed_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Vertices ``(B, H, V, 3)`` against the truth (same shape) -> ``(H,)``: each horizon's mean vertex
+    error (centroid-aligned), summed over the B starts."""
     from meshseq.align import per_vertex_error
 
+    err = per_vertex_error(pred.reshape(-1, *pred.shape[2:]), truth.reshape(-1, *truth.shape[2:]))
+    return err.mean(-1).reshape(truth.shape[:2]).sum(0)
+
+
+def carry_errors(model, segments: list[tuple[np.ndarray, np.ndarray]], carries=CARRIES) -> tuple[np.ndarray, np.ndarray]:
+    """``(ours (len(carries), 3), zero velocity (3,))``: ``summed_errors`` at h5 / h10 / h15 over every
+    start of ``segments`` (``(scaled features (T, V, C), vertices (T, V, 3))`` each), ours by
+    ``synthesize.predict`` with each carry."""
     cells = np.array(HORIZONS) - 1
     ours, zero = np.zeros((len(carries), len(cells))), np.zeros(len(cells))
     for feats, verts in segments:
@@ -43,14 +50,10 @@ def carry_errors(model, segments: list[tuple[np.ndarray, np.ndarray]], carries=C
             continue
         x = np.stack([feats[s:s + GIVEN] for s in starts])  # (B, GIVEN, V, C)
         truth = np.stack([verts[s + GIVEN + cells] for s in starts])  # (B, 3, V, 3)
-        last = verts[starts + GIVEN - 1]
-        zero += per_vertex_error(np.repeat(last, len(cells), 0), truth.reshape(-1, *truth.shape[2:])).mean(
-            -1).reshape(len(starts), -1).sum(0)
+        zero += summed_errors(np.repeat(verts[starts + GIVEN - 1][:, None], len(cells), 1), truth)
         for i, c in enumerate(carries):
             f = predict(model, x, max(HORIZONS), carry=c)[:, cells]
-            pred = model.vertices(f.reshape(-1, *f.shape[2:]))
-            ours[i] += per_vertex_error(pred, truth.reshape(-1, *truth.shape[2:])).mean(-1).reshape(
-                len(starts), -1).sum(0)
+            ours[i] += summed_errors(model.vertices(f.reshape(-1, *f.shape[2:])).reshape(truth.shape), truth)
     return ours, zero
 
 
