@@ -65,3 +65,27 @@ def test_a_stored_carry_outside_zero_to_one_is_refused(run, tmp_path):
     meta_path.write_text(json.dumps(meta))
     with pytest.raises(MeshseqError, match="prediction.carry"):
         meshseq.load(copy / "checkpoints" / "00000006")
+
+
+def test_meshseq_predict_uses_the_runs_carry_and_says_so(run, tmp_path, capsys):
+    import shutil
+
+    from meshseq.cli import main
+    from meshseq.io import load_sequence
+
+    copy = tmp_path / "run"
+    shutil.copytree(run / "run", copy)
+    meta_path = copy / "checkpoints" / "00000006" / "model.json"
+    meta = json.loads(meta_path.read_text())
+    meta["prediction"]["carry"] = 0.0
+    meta_path.write_text(json.dumps(meta))
+    limb = str(run / "limb.npz")
+    common = ["predict", str(copy), limb, "--start", "10", "--given", "3", "--frames", "6", "--guard", "off"]
+    assert main(common + ["-o", str(tmp_path / "fitted.npz")]) == 0
+    assert "carries 0 of the given frames' velocity" in capsys.readouterr().out
+    assert main(common + ["--carry", "0", "-o", str(tmp_path / "zero.npz")]) == 0
+    assert "carries" not in capsys.readouterr().out
+    assert main(common + ["--carry", "0.6", "-o", str(tmp_path / "body.npz")]) == 0
+    fitted, zero, body = (load_sequence(str(tmp_path / f"{n}.npz")).vertices for n in ("fitted", "zero", "body"))
+    np.testing.assert_array_equal(fitted, zero)
+    assert not np.array_equal(fitted, body)

@@ -252,6 +252,9 @@ def cmd_predict(args) -> int:
             print(f"note: the given frames (their poses, or where they head from there) are unlike the training "
                   f"frames: the prediction is {weight[0]:.0%} the model's, the rest the given motion continued and "
                   "slowing (--guard off: the model alone)")
+        if args.carry is None and args.given > 1 and model.carry != CARRY:
+            print(f"note: the run carries {model.carry:g} of the given frames' velocity into the roll-out a frame, "
+                  f"fitted on its training frames (--carry SHARE to choose)")
     elif args.method == "vae_latent":
         all_feats = model.features(seq.vertices)
         lo, hi = _recorded_heldout(model, seq) or (args.start, args.start + args.given)

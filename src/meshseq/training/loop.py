@@ -74,6 +74,9 @@ def train(
             is none (a resume never starts over; its stored options are used).
         force: start over in a non-empty ``run_dir`` (removes the checkpoints, metrics and
             TensorBoard events training wrote there, nothing else).
+    The finished checkpoint's model.json also gets ``prediction``: the carried velocity fitted on the
+    training frames (``meshseq.carry``; once, by the main process).
+
     Raises:
         MeshseqError: bad options or data, nothing to resume, or divergence: a non-finite loss
             term or gradient stops training before the update, naming the iteration and the
