@@ -53,13 +53,6 @@ def held_parts(pred: np.ndarray, given: np.ndarray, parts: list[np.ndarray]) -> 
     return out
 
 
-def quaternion_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``p q`` of unit quaternions ``(..., 4)`` (scalar last), broadcast."""
-    w = p[..., 3:] * q[..., 3:] - np.sum(p[..., :3] * q[..., :3], axis=-1, keepdims=True)
-    v = p[..., 3:] * q[..., :3] + q[..., 3:] * p[..., :3] + np.cross(p[..., :3], q[..., :3])
-    return np.concatenate([v, w], axis=-1)
-
-
 def quaternions(logs: np.ndarray) -> np.ndarray:
     """Unit quaternions ``(..., 4)`` (scalar last) of rotation vectors ``(..., 3)``."""
     from scipy.spatial.transform import Rotation
@@ -73,18 +66,15 @@ def following_parts(raw: np.ndarray, given: np.ndarray, parts: list[np.ndarray],
     that frame, ``R_p(t) = R_a(t) R_a(given)^-1 R_p(given)``, and its stretch held: the part carried
     as if fixed to the body where it sits."""
     from meshseq.acap.diagnostics import rotation_logs
-    from meshseq.acap.interpolation import log_channels, nearest_branch
-
-    from scipy.spatial.transform import Rotation
+    from meshseq.acap.interpolation import log_channels, nearest_branch, quaternion_logs, quaternion_product
 
     out = raw.copy()
     logs, logs_given = rotation_logs(raw), rotation_logs(given)  # (B, n, V, 3), (B, V, 3)
     for mask, a in zip(parts, anchors):
-        inverse_given = Rotation.from_rotvec(logs_given[:, a]).inv().as_quat()  # (B, 4)
+        inverse_given = quaternions(-logs_given[:, a])  # (B, 4)
         turn = quaternion_product(quaternions(logs[:, :, a]), inverse_given[:, None])  # (B, n, 4)
-        part = quaternion_product(turn[:, :, None], quaternions(logs_given[:, mask])[:, None])  # (B, n, m, 4)
-        turned = Rotation.from_quat(part.reshape(-1, 4)).as_rotvec().reshape(part.shape[:-1] + (3,))
-        held = np.broadcast_to(logs_given[:, None][:, :, mask], turned.shape)
+        turned = quaternion_logs(quaternion_product(turn[:, :, None], quaternions(logs_given[:, mask])[:, None]))
+        held = np.broadcast_to(logs_given[:, None][:, :, mask], turned.shape)  # (B, n, m, 3)
         out[:, :, mask, :3] = log_channels(nearest_branch(turned, held))
         out[:, :, mask, 3:9] = given[:, None][:, :, mask, 3:9]
     return out
@@ -111,12 +101,10 @@ def step_size(feats: np.ndarray) -> np.ndarray:
 def training_levels(model) -> tuple[float, float]:
     """The training frames' mean step (scaled features, ``step_size``) and mean feature change
     (``plots.feature_change``, unscaled) of the run ``model``, over its training segments."""
-    from generalize import training_specs
-    from meshseq.io import load_sequence
+    from generalize import training_segments
     from meshseq.plots import feature_change
 
-    segments = [model.features(load_sequence(spec).vertices.astype(np.float64))[a:b]
-                for spec, split in zip(*training_specs(model)) for a, b in split.train if b - a > 1]
+    segments = [f for f, _ in training_segments(model) if len(f) > 1]
     changes = [feature_change(model.scaling.invert(f.astype(np.float64))).mean() for f in segments]
     return float(np.mean([step_size(f) for f in segments])), float(np.mean(changes))
 

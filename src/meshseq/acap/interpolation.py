@@ -52,12 +52,22 @@ def turned_logs(quat: np.ndarray, turn: np.ndarray, s: np.ndarray) -> np.ndarray
     angle = np.linalg.norm(turn, axis=-1, keepdims=True)
     axis = np.divide(turn, angle, out=np.zeros_like(turn), where=angle > 0)
     half = 0.5 * s * angle  # (T, ..., 1)
-    w2, v2 = np.cos(half), np.sin(half) * axis
-    w1, v1 = quat[..., 3:], quat[..., :3]
+    steps = np.concatenate([np.sin(half) * axis, np.cos(half)], axis=-1)  # (T, ..., 4)
+    return quaternion_logs(quaternion_product(quat, steps))
+
+
+def quaternion_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``p q`` of quaternions ``(..., 4)`` (scalar last), broadcast."""
+    w1, v1, w2, v2 = p[..., 3:], p[..., :3], q[..., 3:], q[..., :3]
     w = w1 * w2 - np.sum(v1 * v2, axis=-1, keepdims=True)
     v = w1 * v2 + w2 * v1 + np.cross(v1, v2)
-    flip = np.where(w < 0, -1.0, 1.0)  # the quaternion of angle <= pi
-    w, v = w * flip, v * flip
+    return np.concatenate([v, w], axis=-1)
+
+
+def quaternion_logs(quat: np.ndarray) -> np.ndarray:
+    """Principal logs ``(..., 3)`` (angle <= pi) of unit quaternions ``(..., 4)`` (scalar last)."""
+    flip = np.where(quat[..., 3:] < 0, -1.0, 1.0)  # the quaternion of angle <= pi
+    w, v = quat[..., 3:] * flip, quat[..., :3] * flip
     sin_half = np.linalg.norm(v, axis=-1, keepdims=True)
     scale = np.where(sin_half > 1e-12, 2.0 * np.arctan2(sin_half, w) / np.maximum(sin_half, 1e-300), 2.0 / w)
     return v * scale
