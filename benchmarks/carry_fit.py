@@ -18,19 +18,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from generalize import training_specs  # noqa: E402  (a sibling script)
-
-
-def training_segments(model) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``(scaled features (T, V, C), vertices (T, V, 3))`` of each training segment of the run ``model``."""
-    from meshseq.io import load_sequence
-
-    out = []
-    for spec, split in zip(*training_specs(model)):
-        verts = load_sequence(spec).vertices.astype(np.float64)
-        feats = model.features(verts)
-        out += [(feats[a:b], verts[a:b]) for a, b in split.train]
-    return out
+from generalize import training_segments  # noqa: E402  (a sibling script)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -302,6 +302,19 @@ def training_specs(model) -> tuple[list[str], list]:
     return [d["source"] for d in model.meta["datasets"]], training_splits(model.meta)
 
 
+def training_segments(model) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(scaled features (T, V, C), vertices (T, V, 3))`` of each training segment of the run
+    ``model`` (its sequences read where its checkpoint names them, each extracted once)."""
+    from meshseq.io import load_sequence
+
+    out = []
+    for spec, split in zip(*training_specs(model)):
+        verts = load_sequence(spec).vertices.astype(np.float64)
+        feats = model.features(verts)
+        out += [(feats[a:b], verts[a:b]) for a, b in split.train]
+    return out
+
+
 def training_splits(meta: dict) -> list:
     """The ``Split`` of each sequence a run trained on, from its model.json ``meta``."""
     from meshseq.data.windows import Split
