@@ -51,34 +51,32 @@ def test_training_stores_the_fitted_carry_and_prediction_uses_it(run):
     assert not np.array_equal(predict(model, x, 8), predict(model, x, 8, carry=0.59))
 
 
-def test_a_stored_carry_outside_zero_to_one_is_refused(run, tmp_path):
+def _with_carry(run, copy, carry: float):
+    """A copy of ``run`` whose finished checkpoint's model.json stores ``carry``."""
     import shutil
 
+    shutil.copytree(run, copy)
+    meta_path = copy / "checkpoints" / "00000006" / "model.json"
+    meta = json.loads(meta_path.read_text())
+    meta["prediction"]["carry"] = carry
+    meta_path.write_text(json.dumps(meta))
+    return copy
+
+
+def test_a_stored_carry_outside_zero_to_one_is_refused(run, tmp_path):
     import meshseq
     from meshseq.errors import MeshseqError
 
-    copy = tmp_path / "run"
-    shutil.copytree(run / "run", copy)
-    meta_path = copy / "checkpoints" / "00000006" / "model.json"
-    meta = json.loads(meta_path.read_text())
-    meta["prediction"]["carry"] = 1.0
-    meta_path.write_text(json.dumps(meta))
+    copy = _with_carry(run / "run", tmp_path / "run", 1.0)
     with pytest.raises(MeshseqError, match="prediction.carry"):
         meshseq.load(copy / "checkpoints" / "00000006")
 
 
 def test_meshseq_predict_uses_the_runs_carry_and_says_so(run, tmp_path, capsys):
-    import shutil
-
     from meshseq.cli import main
     from meshseq.io import load_sequence
 
-    copy = tmp_path / "run"
-    shutil.copytree(run / "run", copy)
-    meta_path = copy / "checkpoints" / "00000006" / "model.json"
-    meta = json.loads(meta_path.read_text())
-    meta["prediction"]["carry"] = 0.0
-    meta_path.write_text(json.dumps(meta))
+    copy = _with_carry(run / "run", tmp_path / "run", 0.0)
     limb = str(run / "limb.npz")
     common = ["predict", str(copy), limb, "--start", "10", "--given", "3", "--frames", "6", "--guard", "off"]
     assert main(common + ["-o", str(tmp_path / "fitted.npz")]) == 0

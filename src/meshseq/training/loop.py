@@ -258,12 +258,14 @@ def completion_fit(data: TrainingData, splits: list[Split], placement: str) -> d
 def carry_fit(folder: str, data: TrainingData, setup: "_Setup") -> None:
     """``meshseq.carry.fit_carry`` of the checkpoint ``folder`` (the finished model) on the training
     segments of ``data`` (its loaded frames), added to its model.json as ``prediction`` (once)."""
+    import json
+
     import meshseq
     from meshseq.carry import fit_carry
 
+    if "prediction" in json.loads((Path(folder) / ckpt.MODEL_META).read_text()):
+        return  # a resumed run with nothing left to train, fitted already: its weights are not read
     model = meshseq.load(folder)
-    if "prediction" in model.meta:
-        return
     segments = [(f[a:b].astype(np.float32), np.asarray(v[a:b], dtype=np.float64))
                 for f, v, split in zip(setup.scaled, data.vertices, setup.splits) for a, b in split.train]
     ckpt.add_model_meta(folder, {"prediction": fit_carry(model, segments)})
